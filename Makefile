@@ -1,0 +1,27 @@
+# skinid — the two commands a user needs: `make test` and `make demo`.
+# Each bootstraps .venv on a fresh machine (scripts/setup.sh).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+export OMP_NUM_THREADS ?= 1
+
+.PHONY: setup test test-fast demo benchmarks clean
+
+$(VENV)/.installed: pyproject.toml scripts/setup.sh
+	VENV=$(VENV) bash scripts/setup.sh
+
+setup: $(VENV)/.installed
+
+test: setup
+	$(PY) -m pytest -q tests
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow and not mpi" tests
+
+demo: setup
+	$(PY) -m skinfem.demo
+
+benchmarks: setup
+	$(PY) benchmarks/forward.py
+
+clean:
+	rm -rf out/ meshes/*.msh .pytest_cache

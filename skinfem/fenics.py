@@ -1,0 +1,29 @@
+"""Import DOLFINx and PETSc the same way everywhere.
+
+The PyPI wheel ``dolfinx-solver-real`` ships PETSc/MPICH libraries that must be loaded by
+``import dolfinx_solver`` before ``dolfinx`` or ``petsc4py``. A conda-forge or apt DOLFINx
+has no such module, and then the import is simply skipped.
+"""
+
+from __future__ import annotations
+
+try:  # the PyPI wheel; absent for conda/apt installs
+    import dolfinx_solver  # noqa: F401
+except ImportError:
+    pass
+
+try:
+    import dolfinx  # noqa: F401
+    import dolfinx.fem  # noqa: F401
+    import dolfinx.fem.petsc  # noqa: F401
+    import dolfinx.io  # noqa: F401
+    import dolfinx.mesh  # noqa: F401
+    import ufl  # noqa: F401
+    from petsc4py import PETSc  # noqa: F401
+except ImportError as exc:  # pragma: no cover - depends on the install
+    raise ImportError(
+        "skinfem needs DOLFINx 0.11 (FEniCSx). Install it with `pip install dolfinx-solver-real` "
+        "or from conda-forge (`conda install -c conda-forge fenics-dolfinx`); see README 'Install'."
+    ) from exc
+
+__all__ = ["dolfinx", "ufl", "PETSc"]

@@ -1,0 +1,284 @@
+"""Layered hexahedral block: skin on muscle, with the membrane as a bonded layer on top.
+
+Built with the gmsh Python API by extrusion, so every cell is a hexahedron and the in-plane
+grid is a tensor product, mirror-symmetric about x = 0 and y = 0:
+
+- in plane: uniform cells of ``h_membrane`` under the membrane footprint |x|, |y| <= a,
+  geometrically graded outwards to about ``h_far`` at the block edge |x| or |y| = L/2;
+- through the thickness: ``skin_layers`` cells in the skin (z in [-h_s, 0]),
+  ``muscle_layers`` in the muscle (z in [-h_s - h_m, -h_s]) and ``membrane_layers`` in the
+  membrane (z in [0, t_mem] over the footprint; absent for ``membrane.model = "rigid"``).
+
+Units: mm. Physical groups (cell and facet tags) are listed in :data:`TAGS`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from skinfem.config import Config, MeshConfig
+
+TAGS = {
+    # volumes
+    "skin": 1,
+    "muscle": 2,
+    "membrane": 3,
+    # facets
+    "bottom": 11,
+    "sides": 12,
+    "top": 13,
+    "footprint": 14,
+    "membrane_top": 15,
+}
+
+DEFAULT_MESH_DIR = Path("meshes")
+
+
+def graded_sizes(length: float, h_start: float, h_end: float) -> np.ndarray:
+    """Cell sizes of a geometric progression from ``h_start`` that fill ``length`` exactly.
+
+    The number of cells is chosen so that the last cell is as close as possible to
+    ``h_end``. Returns a (n,) array of sizes in mm summing to ``length``.
+    """
+    if h_end <= h_start * (1 + 1e-12):
+        n = max(1, round(length / h_start))
+        return np.full(n, length / n)
+    best = None
+    for n in range(1, 10_000):
+        ratio = _progression_ratio(length, h_start, n)
+        sizes = h_start * ratio ** np.arange(n)
+        sizes *= length / sizes.sum()
+        misfit = abs(np.log(sizes[-1] / h_end))
+        if best is None or misfit < best[0]:
+            best = (misfit, sizes)
+        if sizes[-1] < h_end:
+            break
+    return best[1]
+
+
+def _progression_ratio(length: float, h0: float, n: int) -> float:
+    """Ratio r with h0 (1 + r + ... + r^(n-1)) = length (bisection; r >= 0)."""
+    if n * h0 >= length:
+        lo, hi = 0.0, 1.0
+    else:
+        lo, hi = 1.0, 2.0
+        while h0 * (hi**n - 1) / (hi - 1) < length:
+            hi *= 2
+    total = lambda r: h0 * n if abs(r - 1) < 1e-14 else h0 * (r**n - 1) / (r - 1)  # noqa: E731
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if total(mid) < length:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def inplane_coordinates(mesh_cfg: MeshConfig) -> np.ndarray:
+    """Node coordinates (mm) along x (and y): symmetric about 0, refined under the membrane."""
+    half = mesh_cfg.length / 2
+    a = mesh_cfg.membrane_size / 2
+    n_center = max(2, round(mesh_cfg.membrane_size / mesh_cfg.h_membrane))
+    h_center = mesh_cfg.membrane_size / n_center
+    outer = graded_sizes(half - a, h_center, mesh_cfg.h_far)
+    right = a + np.concatenate([[0.0], np.cumsum(outer)])
+    right[-1] = half
+    center = np.linspace(-a, a, n_center + 1)
+    return np.concatenate([-right[::-1], center[1:-1], right])
+
+
+@dataclass(frozen=True)
+class MeshInfo:
+    """Summary of a generated mesh."""
+
+    path: Path
+    n_cells: int
+    n_skin_cells: int
+    n_nodes: int
+    sha256: str
+
+
+def mesh_path(config: Config, directory: Path | str = DEFAULT_MESH_DIR) -> Path:
+    """The file a configuration's mesh lives in: ``<dir>/<config name>-<mesh hash>.msh``."""
+    return Path(directory) / f"{config.name}-{config.mesh_key}.msh"
+
+
+def file_sha256(path: Path | str) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _extrude_layers(gmsh, dim_tags, dx, dy, dz, sizes):
+    """Extrude entities with one layer per entry of ``sizes`` (relative heights)."""
+    heights = np.cumsum(sizes) / np.sum(sizes)
+    heights[-1] = 1.0
+    return gmsh.model.geo.extrude(
+        dim_tags, dx, dy, dz, numElements=[1] * len(sizes), heights=list(heights), recombine=True
+    )
+
+
+def build_mesh(config: Config, path: Path | str) -> MeshInfo:
+    """Generate the layered hexahedral mesh with gmsh and write it to ``path`` (.msh 4.1).
+
+    Runs on one process (call it on rank 0 only). Overwrites ``path`` atomically.
+    """
+    import gmsh
+
+    m = config.mesh
+    with_membrane = config.membrane.model == "elastic"
+    coords = inplane_coordinates(m)
+    half, a = m.length / 2, m.membrane_size / 2
+    # split the node coordinates at -a and +a into three segments
+    i_lo = int(np.argmin(np.abs(coords + a)))
+    i_hi = int(np.argmin(np.abs(coords - a)))
+    segments = [coords[: i_lo + 1], coords[i_lo : i_hi + 1], coords[i_hi:]]
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.msh")
+    initialized_here = not gmsh.isInitialized()
+    if initialized_here:
+        gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("skinid-block")
+        geo = gmsh.model.geo
+        # x-lines along y = -L/2 (one per segment), extruded point by point
+        p = geo.addPoint(-half, -half, 0.0)
+        x_lines = []
+        for seg in segments:
+            out = _extrude_layers(gmsh, [(0, p)], seg[-1] - seg[0], 0, 0, np.diff(seg))
+            p = out[0][1]
+            x_lines.append(out[1][1])
+        # rows of surfaces along y
+        surfaces = {}
+        bottom_lines = [(1, t) for t in x_lines]
+        for j, seg in enumerate(segments):
+            out = _extrude_layers(gmsh, bottom_lines, 0, seg[-1] - seg[0], 0, np.diff(seg))
+            # for each extruded line: [top line, surface, lateral lines...]
+            tops, k = [], 0
+            for i in range(3):
+                tops.append(out[k])
+                surfaces[(i, j)] = out[k + 1][1]
+                k += 4
+            bottom_lines = tops
+        top_surfaces = [(2, surfaces[(i, j)]) for j in range(3) for i in range(3)]
+        # skin: downwards from z = 0
+        skin_out = _extrude_layers(
+            gmsh, top_surfaces, 0, 0, -m.skin_thickness, np.full(m.skin_layers, 1.0)
+        )
+        skin_bottoms = [skin_out[6 * k] for k in range(9)]
+        skin_vols = [skin_out[6 * k + 1][1] for k in range(9)]
+        muscle_out = _extrude_layers(
+            gmsh, skin_bottoms, 0, 0, -m.muscle_thickness, np.full(m.muscle_layers, 1.0)
+        )
+        muscle_vols = [muscle_out[6 * k + 1][1] for k in range(9)]
+        membrane_vols = []
+        if with_membrane:
+            mem_out = _extrude_layers(
+                gmsh,
+                [(2, surfaces[(1, 1)])],
+                0,
+                0,
+                m.membrane_thickness,
+                np.full(m.membrane_layers, 1.0),
+            )
+            membrane_vols = [mem_out[1][1]]
+        geo.synchronize()
+
+        tol = 1e-6 * m.length
+        z_bottom = -m.skin_thickness - m.muscle_thickness
+
+        def surfaces_in(xmin, ymin, zmin, xmax, ymax, zmax):
+            found = gmsh.model.getEntitiesInBoundingBox(
+                xmin - tol, ymin - tol, zmin - tol, xmax + tol, ymax + tol, zmax + tol, 2
+            )
+            return [t for _, t in found]
+
+        bottom = surfaces_in(-half, -half, z_bottom, half, half, z_bottom)
+        sides = sorted(
+            set(surfaces_in(-half, -half, z_bottom, -half, half, 0))
+            | set(surfaces_in(half, -half, z_bottom, half, half, 0))
+            | set(surfaces_in(-half, -half, z_bottom, half, -half, 0))
+            | set(surfaces_in(-half, half, z_bottom, half, half, 0))
+        )
+        footprint = [surfaces[(1, 1)]]
+        top = [t for _, t in top_surfaces if t not in footprint]
+        gmsh.model.addPhysicalGroup(3, skin_vols, TAGS["skin"], name="skin")
+        gmsh.model.addPhysicalGroup(3, muscle_vols, TAGS["muscle"], name="muscle")
+        if with_membrane:
+            gmsh.model.addPhysicalGroup(3, membrane_vols, TAGS["membrane"], name="membrane")
+            z_top = m.membrane_thickness
+            membrane_top = surfaces_in(-a, -a, z_top, a, a, z_top)
+            gmsh.model.addPhysicalGroup(2, membrane_top, TAGS["membrane_top"], name="membrane_top")
+        gmsh.model.addPhysicalGroup(2, bottom, TAGS["bottom"], name="bottom")
+        gmsh.model.addPhysicalGroup(2, sides, TAGS["sides"], name="sides")
+        gmsh.model.addPhysicalGroup(2, top, TAGS["top"], name="top")
+        gmsh.model.addPhysicalGroup(2, footprint, TAGS["footprint"], name="footprint")
+
+        gmsh.option.setNumber("Mesh.RecombineAll", 1)
+        gmsh.model.mesh.generate(3)
+        gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
+        gmsh.option.setNumber("Mesh.Binary", 1)
+        gmsh.write(str(tmp))
+        counts = {}
+        for name, dim in (("all", 3),):
+            types, tags, _ = gmsh.model.mesh.getElements(dim)
+            counts[name] = sum(len(t) for t in tags)
+        n_skin = 0
+        for vol in skin_vols:
+            _, tags, _ = gmsh.model.mesh.getElements(3, vol)
+            n_skin += sum(len(t) for t in tags)
+        node_tags, _, _ = gmsh.model.mesh.getNodes()
+        n_nodes = len(node_tags)
+        gmsh.model.remove()
+    finally:
+        if initialized_here:
+            gmsh.finalize()
+    tmp.replace(path)
+    return MeshInfo(path, counts["all"], n_skin, n_nodes, file_sha256(path))
+
+
+def ensure_mesh(config: Config, directory: Path | str = DEFAULT_MESH_DIR, comm=None) -> Path:
+    """Return the mesh file for ``config``, generating it (on rank 0) if it does not exist."""
+    path = mesh_path(config, directory)
+    rank = 0 if comm is None else comm.rank
+    if rank == 0 and not path.exists():
+        build_mesh(config, path)
+    if comm is not None:
+        comm.barrier()
+    return path
+
+
+def read_mesh(path: Path | str, comm):
+    """Read a mesh written by :func:`build_mesh` into DOLFINx.
+
+    Returns ``dolfinx.io.gmsh.MeshData`` (mesh, cell_tags, facet_tags, ...).
+
+    Raises:
+        FileNotFoundError: with the path and how to create the mesh.
+    """
+    import gmsh
+
+    from skinfem.fenics import dolfinx  # noqa: F401
+    from dolfinx.io import gmsh as gmshio
+
+    path = Path(path)
+    exists = comm.bcast(path.is_file() if comm.rank == 0 else None, root=0)
+    if not exists:
+        raise FileNotFoundError(
+            f"mesh file '{path}' does not exist; create it with `skinid mesh --config <config>`"
+        )
+    if comm.rank != 0:
+        return gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
+    gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("skinid-read")
+        gmsh.merge(str(path))
+        return gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
+    finally:
+        gmsh.finalize()

@@ -1,0 +1,253 @@
+"""The forward model: skin + muscle block actuated by a bonded active membrane.
+
+``SkinModel(config).simulate(params, design)`` ramps the membrane eigen-strain
+t (alpha11, alpha22) over ``solver.increments`` equal steps t = 1/n, ..., 1 and returns the
+skin log strain at every step. Forms are compiled once per model; material parameters and
+the load are DOLFINx Constants, so one model serves a whole sweep.
+
+Formulation (see README "Forward model"):
+- displacement-only Lagrange elements of ``solver.element_degree`` on hexahedra;
+- total energy  int_skin Psi_HGO + int_muscle Psi_NH + int_membrane Psi_mem  with
+  residual and Jacobian from ``ufl.derivative``;
+- bottom clamped, lateral faces on rollers, top free except the membrane;
+- Newton (PETSc SNES, full steps) with MUMPS LU; the initial guess of each increment is
+  extrapolated linearly from the two previous converged states; an increment that fails is
+  halved (cut-back) up to ``solver.max_cutbacks`` times, frames are still reported at the
+  requested t.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from skinfem.config import Config
+from skinfem.fenics import PETSc, dolfinx, ufl
+from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
+from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
+from skinfem.params import Design, SkinParams
+from skinfem.strain import SkinStrainSampler, top_skin_cells
+
+
+class ConvergenceError(RuntimeError):
+    """Newton did not converge even after the allowed cut-backs."""
+
+
+@dataclass
+class StrainFrames:
+    """Skin log strain at the requested load fractions of one simulation.
+
+    Attributes:
+        t: (n_frames,) load fractions in (0, 1].
+        strain: (n_frames, n_cells, 3) log strain components (xx, yy, xy), dimensionless.
+        xy: (n_cells, 2) reference centroids of the observed skin cells [mm].
+        volume: (n_cells,) reference cell volumes [mm^3].
+        newton_iterations: Newton iterations of every accepted increment.
+        cutbacks: number of halved increments.
+        seconds: wall time of the simulation [s].
+    """
+
+    t: np.ndarray
+    strain: np.ndarray
+    xy: np.ndarray
+    volume: np.ndarray
+    newton_iterations: list[int] = field(default_factory=list)
+    cutbacks: int = 0
+    seconds: float = 0.0
+
+
+class SkinModel:
+    """Finite-element model of the layered block with the active membrane.
+
+    Args:
+        config: validated configuration (mesh, materials, solver).
+        comm: MPI communicator the model is distributed over.
+        mesh_dir: where meshes are read from / generated into.
+    """
+
+    def __init__(self, config: Config, comm: MPI.Comm = MPI.COMM_WORLD, mesh_dir=DEFAULT_MESH_DIR):
+        t0 = time.perf_counter()
+        self.config = config
+        self.comm = comm
+        self.mesh_path = ensure_mesh(config, mesh_dir, comm)
+        self.mesh_sha256 = comm.bcast(file_sha256(self.mesh_path) if comm.rank == 0 else None)
+        data = read_mesh(self.mesh_path, comm)
+        self.mesh, self.cell_tags = data.mesh, data.cell_tags
+        self.facet_tags = data.facet_tags
+        mesh = self.mesh
+        solver = config.solver
+        self.V = dolfinx.fem.functionspace(mesh, ("Lagrange", solver.element_degree, (3,)))
+        self.u = dolfinx.fem.Function(self.V, name="displacement")
+        c = lambda value: dolfinx.fem.Constant(mesh, PETSc.ScalarType(value))  # noqa: E731
+        self.mu, self.k1, self.k2, self.kappa = c(1.0), c(0.0), c(1.0), c(0.0)
+        self.a0 = dolfinx.fem.Constant(mesh, np.array([1.0, 0.0, 0.0], dtype=PETSc.ScalarType))
+        self.alpha11, self.alpha22 = c(0.0), c(0.0)
+
+        F = ufl.Identity(3) + ufl.grad(self.u)
+        dx = ufl.Measure(
+            "dx",
+            domain=mesh,
+            subdomain_data=self.cell_tags,
+            metadata={"quadrature_degree": solver.quadrature_degree},
+        )
+        skin_K = config.skin.bulk_ratio * self.mu
+        energy = hgo_energy(
+            F, self.mu, self.k1, self.k2, self.kappa, self.a0, skin_K, config.skin.fiber_invariant
+        ) * dx(TAGS["skin"])
+        muscle = config.muscle
+        energy += neo_hookean_energy(F, muscle.mu, muscle.bulk_ratio * muscle.mu) * dx(TAGS["muscle"])
+        self.has_membrane = config.membrane.model == "elastic"
+        if self.has_membrane:
+            lamina = LaminaStiffness.from_config(config.membrane)
+            energy += membrane_energy(F, self.alpha11, self.alpha22, lamina) * dx(TAGS["membrane"])
+        self.energy = energy
+        v = ufl.TestFunction(self.V)
+        du = ufl.TrialFunction(self.V)
+        residual = ufl.derivative(energy, self.u, v)
+        jacobian = ufl.derivative(residual, self.u, du)
+        self.bcs = self._boundary_conditions()
+        self._prefix = f"skinid_{id(self)}_"
+        self.problem = dolfinx.fem.petsc.NonlinearProblem(
+            residual,
+            self.u,
+            bcs=self.bcs,
+            J=jacobian,
+            petsc_options_prefix=self._prefix,
+            petsc_options={
+                "snes_type": "newtonls",
+                "snes_linesearch_type": "basic",
+                "snes_rtol": solver.rtol,
+                "snes_atol": solver.atol,
+                "snes_stol": 1e-9,
+                "snes_max_it": solver.max_iterations,
+                "ksp_type": "preonly",
+                "pc_type": "lu",
+                "pc_factor_mat_solver_type": "mumps",
+            },
+        )
+        depth = config.mesh.skin_thickness / config.mesh.skin_layers
+        cells = top_skin_cells(mesh, self.cell_tags, TAGS["skin"], depth)
+        self.strain_sampler = SkinStrainSampler(self.u, cells, solver.quadrature_degree)
+        self.setup_seconds = time.perf_counter() - t0
+
+    # -- boundary conditions -------------------------------------------------------------
+    def _boundary_conditions(self):
+        mesh, V = self.mesh, self.V
+        fdim = mesh.topology.dim - 1
+        half = self.config.mesh.length / 2
+        z_bottom = -(self.config.mesh.skin_thickness + self.config.mesh.muscle_thickness)
+        tol = 1e-8 * half
+        locate = dolfinx.mesh.locate_entities_boundary
+        bottom = locate(mesh, fdim, lambda x: np.isclose(x[2], z_bottom, atol=tol))
+        x_sides = locate(mesh, fdim, lambda x: np.isclose(np.abs(x[0]), half, atol=tol))
+        y_sides = locate(mesh, fdim, lambda x: np.isclose(np.abs(x[1]), half, atol=tol))
+        zero = PETSc.ScalarType(0)
+        topo = dolfinx.fem.locate_dofs_topological
+        bcs = [
+            dolfinx.fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), topo(V, fdim, bottom), V),
+            dolfinx.fem.dirichletbc(zero, topo(V.sub(0), fdim, x_sides), V.sub(0)),
+            dolfinx.fem.dirichletbc(zero, topo(V.sub(1), fdim, y_sides), V.sub(1)),
+        ]
+        if self.config.membrane.model == "rigid":
+            footprint = self.facet_tags.find(TAGS["footprint"])
+            self._driver = []
+            for i, alpha in ((0, self.alpha11), (1, self.alpha22)):
+                Vi, _ = V.sub(i).collapse()
+                g = dolfinx.fem.Function(Vi)
+                dofs = topo((V.sub(i), Vi), fdim, footprint)
+                bcs.append(dolfinx.fem.dirichletbc(g, dofs, V.sub(i)))
+                self._driver.append((g, i, alpha))
+        return bcs
+
+    def _set_load(self, t: float, design: Design) -> None:
+        self.alpha11.value = t * design.alpha11
+        self.alpha22.value = t * design.alpha22
+        if not self.has_membrane:
+            for g, i, alpha in self._driver:
+                value = float(alpha.value)
+                g.interpolate(lambda x, i=i, value=value: value * x[i])
+
+    def set_params(self, params: SkinParams) -> None:
+        """Load the skin parameters into the compiled forms (theta in degrees)."""
+        self.mu.value = params.mu
+        self.k1.value = params.k1
+        self.k2.value = params.k2
+        self.kappa.value = params.kappa
+        th = params.theta_rad
+        self.a0.value[:] = (np.cos(th), np.sin(th), 0.0)
+
+    # -- solving ---------------------------------------------------------------------------
+    def _newton(self) -> tuple[bool, int]:
+        snes = self.problem.solver
+        self.problem.solve()
+        reason = snes.getConvergedReason()
+        its = snes.getIterationNumber()
+        ok = reason > 0 and np.all(np.isfinite(self.u.x.array))
+        ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
+        return ok, its
+
+    def load_fractions(self) -> np.ndarray:
+        n = self.config.solver.increments
+        return np.arange(1, n + 1) / n
+
+    def simulate(self, params: SkinParams, design: Design) -> StrainFrames:
+        """Ramp the membrane eigen-strain and return the skin log strain at every frame.
+
+        Raises:
+            ConvergenceError: an increment failed after ``solver.max_cutbacks`` halvings.
+        """
+        start = time.perf_counter()
+        self.set_params(params)
+        x = self.u.x.array
+        x[:] = 0.0
+        targets = self.load_fractions()
+        base_step = targets[0]
+        t, step = 0.0, base_step
+        history: tuple[float, np.ndarray] | None = None  # (t, u) of the previous state
+        frames, iterations, cutbacks = [], [], 0
+        for target in targets:
+            while t < target - 1e-12:
+                step = min(step, target - t)
+                t_new = t + step
+                saved = x.copy()
+                if history is not None:  # linear extrapolation predictor
+                    t_old, x_old = history
+                    x += (t_new - t) / (t - t_old) * (saved - x_old)
+                self._set_load(t_new, design)
+                converged, its = self._newton()
+                if converged:
+                    history = (t, saved)
+                    t = t_new
+                    iterations.append(its)
+                    step = min(2 * step, base_step)
+                    continue
+                x[:] = saved
+                cutbacks += 1
+                step /= 2
+                if cutbacks > self.config.solver.max_cutbacks:
+                    raise ConvergenceError(
+                        f"Newton failed at load fraction t = {t_new:.4g} for {params} and {design} "
+                        f"after {cutbacks - 1} cut-backs"
+                    )
+            frames.append(self.strain_sampler())
+        seconds = time.perf_counter() - start
+        if self.comm.rank != 0:
+            return StrainFrames(targets, None, None, None, iterations, cutbacks, seconds)
+        return StrainFrames(
+            t=targets,
+            strain=np.stack(frames),
+            xy=self.strain_sampler.xy,
+            volume=self.strain_sampler.volume,
+            newton_iterations=iterations,
+            cutbacks=cutbacks,
+            seconds=seconds,
+        )
+
+    @property
+    def n_dofs(self) -> int:
+        imap = self.V.dofmap.index_map
+        return imap.size_global * self.V.dofmap.index_map_bs
