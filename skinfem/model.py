@@ -19,6 +19,7 @@ Formulation (see README "Forward model"):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -194,8 +195,16 @@ class SkinModel:
         n = self.config.solver.increments
         return np.arange(1, n + 1) / n
 
-    def simulate(self, params: SkinParams, design: Design) -> StrainFrames:
+    def simulate(
+        self,
+        params: SkinParams,
+        design: Design,
+        on_frame: Callable[[float], None] | None = None,
+    ) -> StrainFrames:
         """Ramp the membrane eigen-strain and return the skin log strain at every frame.
+
+        ``on_frame(t)`` is called (collectively) after each frame converged, e.g. to write
+        ParaView fields.
 
         Raises:
             ConvergenceError: an increment failed after ``solver.max_cutbacks`` halvings.
@@ -234,6 +243,8 @@ class SkinModel:
                         f"after {cutbacks - 1} cut-backs"
                     )
             frames.append(self.strain_sampler())
+            if on_frame is not None:
+                on_frame(float(target))
         seconds = time.perf_counter() - start
         if self.comm.rank != 0:
             return StrainFrames(targets, None, None, None, iterations, cutbacks, seconds)

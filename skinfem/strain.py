@@ -42,7 +42,7 @@ def top_skin_cells(mesh, cell_tags, skin_tag: int, skin_top_layer_depth: float) 
 def cell_centroids(mesh, cells: np.ndarray) -> np.ndarray:
     """(n, 3) vertex averages of the given cells' geometry nodes (reference configuration)."""
     x = mesh.geometry.x
-    dofs = mesh.geometry.dofmap[cells]
+    dofs = mesh.geometry.dofmaps[0][cells]
     return x[dofs].mean(axis=1)
 
 

@@ -1,0 +1,37 @@
+"""The umbrella console script ``skinid``: dispatches to the packages' command lines.
+
+Only the package that owns a command is imported, so ``skinid surrogate ...`` and
+``skinid infer ...`` work without FEniCSx.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+ROUTES: dict[str, tuple[str, str]] = {
+    "mesh": ("skinfem.__main__", "generate the gmsh mesh of a configuration"),
+    "simulate": ("skinfem.__main__", "one forward simulation -> dataset (.h5)"),
+}
+
+
+def usage() -> str:
+    lines = ["usage: skinid <command> [options]   (skinid <command> --help for details)", ""]
+    lines += [f"  {name:<10} {help_}" for name, (_, help_) in ROUTES.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage())
+        return 0
+    if argv[0] not in ROUTES:
+        print(f"skinid: unknown command '{argv[0]}'\n\n{usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(ROUTES[argv[0]][0])
+    return module.main(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

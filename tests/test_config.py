@@ -1,0 +1,70 @@
+import re
+
+import pytest
+
+from skinfem.config import Config, ConfigError, config_from_toml, load_config, preset_names
+from skinfem.params import Design, SkinParams
+
+
+def test_presets_load_and_round_trip():
+    assert {"small", "paper"} <= set(preset_names())
+    for name in preset_names():
+        cfg = load_config(name)
+        assert config_from_toml(cfg.to_toml()) == cfg
+
+
+def test_paper_designs_are_the_14_of_the_paper():
+    designs = Config().sweep.designs
+    assert len(designs) == 14
+    assert sorted({d[0] for d in designs}) == [-0.05, 0.05]
+    assert [0.05, 0.0] in designs and [0.05, -0.05] in designs and [0.05, 0.05] in designs
+
+
+@pytest.mark.parametrize(
+    "toml, key",
+    [
+        ("[mesh]\nh_fra = 2.0\n", "mesh.h_fra"),
+        ("[mesh]\nh_far = -2.0\n", "mesh.h_far"),
+        ("[skin]\nbulk_ratio = 'x'\n", "skin.bulk_ratio"),
+        ("[solver]\nelement_degree = 3\n", "solver.element_degree"),
+        ("[membrane]\nE1 = -1.0\n", "membrane.E1"),
+        ("[sweep]\nbounds = { mu = [1e-3, 2e-3] }\n", "sweep.bounds"),
+        ("[sweep]\ndesigns = [[0.6, 0.0]]\n", "sweep.designs[0]"),
+        ("[bogus]\nx = 1\n", "bogus"),
+    ],
+)
+def test_bad_keys_are_named(tmp_path, toml, key):
+    path = tmp_path / "c.toml"
+    path.write_text(toml)
+    with pytest.raises(ConfigError, match=re.escape(f"'{key}'")):
+        load_config(path)
+
+
+def test_missing_config_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="no such file and no such preset"):
+        load_config("nonexistent")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[mesh\n")
+    with pytest.raises(ConfigError, match="invalid TOML"):
+        load_config(bad)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(mu=-1e-3), "mu must be > 0"),
+        (dict(k1=-0.1), "k1 must be >= 0"),
+        (dict(kappa=0.34), r"kappa must be in \[0, 1/3\]"),
+        (dict(k2=float("nan")), "k2 must be a finite number"),
+    ],
+)
+def test_skin_params_validation(kwargs, match):
+    base = dict(mu=1e-3, k1=0.02, k2=10.0, kappa=0.28, theta=30.0)
+    with pytest.raises(ValueError, match=match):
+        SkinParams(**{**base, **kwargs})
+
+
+def test_design_validation():
+    Design(0.49, -0.49)
+    with pytest.raises(ValueError, match=r"\|alpha11\| must be < 0.5"):
+        Design(0.5, 0.0)
