@@ -1,0 +1,198 @@
+"""Forward-model benchmark: time per simulation, Newton iterations, memory, time breakdown,
+and a mesh/element convergence table.
+
+    python benchmarks/forward.py timing [--config paper] [--ranks 1 2]
+    python benchmarks/forward.py convergence
+    python benchmarks/forward.py run-one CONFIG OUT.json   # (internal, under mpirun)
+
+Results are merged into benchmarks/results/forward.json. Numbers are recorded, not asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "forward.json"
+PARAMS = dict(mu=1.2e-3, k1=0.017, k2=12.0, kappa=0.28, theta=30.0)
+DESIGN = dict(alpha11=0.05, alpha22=-0.05)  # the paper's "mixed" design
+EVENTS = {
+    "factorization": ("MatLUFactorNum", "MatLUFactorSym"),
+    "triangular_solves": ("MatSolve",),
+    "jacobian_assembly": ("SNESJacobianEval",),
+    "residual_assembly": ("SNESFunctionEval",),
+}
+
+
+def merge_results(key: str, value) -> None:
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    data[key] = value
+    RESULTS.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def run_one(config_source: str, out: str, mesh_dir: str) -> None:
+    """One simulation on the ranks of COMM_WORLD; rank 0 writes timings to ``out``."""
+    from mpi4py import MPI
+
+    from skinfem.config import load_config
+    from skinfem.fenics import PETSc
+    from skinfem.model import SkinModel
+    from skinfem.params import Design, SkinParams
+
+    comm = MPI.COMM_WORLD
+    config = load_config(config_source)
+    t0 = time.perf_counter()
+    model = SkinModel(config, comm, mesh_dir=mesh_dir)
+    setup = time.perf_counter() - t0
+    PETSc.Log.begin()
+    frames = model.simulate(SkinParams(**PARAMS), Design(**DESIGN))
+    t1 = time.perf_counter()
+    for _ in range(3):
+        model.strain_sampler()
+    strain_seconds = (time.perf_counter() - t1) / 3 * len(frames.t)
+    breakdown = {}
+    for name, events in EVENTS.items():
+        breakdown[name] = sum(PETSc.Log.Event(e).getPerfInfo()["time"] for e in events)
+    breakdown = {k: comm.allreduce(v, op=MPI.MAX) for k, v in breakdown.items()}
+    breakdown["strain_postprocessing"] = strain_seconds
+    breakdown["setup_mesh_read_and_jit"] = setup
+    peak_mb = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, op=MPI.SUM)
+    if comm.rank == 0:
+        last = frames.strain[-1]
+        Path(out).write_text(
+            json.dumps(
+                {
+                    "config": config.name,
+                    "ranks": comm.size,
+                    "dofs": model.n_dofs,
+                    "skin_cells": len(frames.xy),
+                    "seconds_per_simulation": frames.seconds,
+                    "newton_iterations_per_increment": frames.newton_iterations,
+                    "factorizations": int(sum(frames.newton_iterations)),
+                    "cutbacks": frames.cutbacks,
+                    "peak_memory_mb_all_ranks": peak_mb,
+                    "breakdown_seconds": breakdown,
+                    "max_abs_strain_xx_yy": [float(np.abs(last[:, 0]).max()), float(np.abs(last[:, 1]).max())],
+                },
+                indent=2,
+            )
+        )
+
+
+def timing(config: str, ranks: list[int], mesh_dir: str) -> None:
+    mpirun = Path(sys.executable).with_name("mpirun")
+    for n in ranks:
+        out = Path(f"/tmp/skinid-forward-{config}-{n}.json")
+        cmd = [sys.executable, __file__, "run-one", config, str(out), "--mesh-dir", mesh_dir]
+        if n > 1:
+            cmd = [str(mpirun), "-n", str(n), *cmd]
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        subprocess.run(cmd, check=True, env=env)
+        result = json.loads(out.read_text())
+        print(json.dumps(result, indent=2))
+        merge_results(f"timing_{config}_{n}rank", result)
+
+
+def coarse_average(fine_xy, fine_values, coarse_xy, coarse_edges):
+    """Average fine-cell values over the coarse cells that contain their centroids."""
+    ix = np.searchsorted(coarse_edges, fine_xy[:, 0]) - 1
+    iy = np.searchsorted(coarse_edges, fine_xy[:, 1]) - 1
+    n = len(coarse_edges) - 1
+    sums = np.zeros((n * n, fine_values.shape[1]))
+    counts = np.zeros(n * n)
+    np.add.at(sums, iy * n + ix, fine_values)
+    np.add.at(counts, iy * n + ix, 1)
+    grid = sums / np.maximum(counts, 1)[:, None]
+    cx = np.searchsorted(coarse_edges, coarse_xy[:, 0]) - 1
+    cy = np.searchsorted(coarse_edges, coarse_xy[:, 1]) - 1
+    return grid[cy * n + cx]
+
+
+def convergence(mesh_dir: str) -> None:
+    """Change of the skin strain field between meshes and elements (relative L2 over cells).
+
+    Each run is compared with a finer one by averaging the finer field over the coarser
+    cells (the in-plane grids nest when h_membrane halves and h_far scales with it).
+    """
+    from mpi4py import MPI
+
+    from skinfem.config import Config
+    from skinfem.mesh import inplane_coordinates
+    from skinfem.model import SkinModel
+    from skinfem.params import Design, SkinParams
+
+    runs = {}
+    cases = [
+        ("Q1 h=2", dict(h_membrane=2.0, h_far=8.0), 1, 2),
+        ("Q1 h=1", dict(h_membrane=1.0, h_far=4.0), 1, 2),
+        ("Q1 h=0.5 (paper)", dict(h_membrane=0.5, h_far=2.0), 1, 2),
+        ("Q2 h=2", dict(h_membrane=2.0, h_far=8.0), 2, 4),
+        ("Q2 h=1", dict(h_membrane=1.0, h_far=4.0), 2, 4),
+    ]
+    for label, mesh, degree, qdeg in cases:
+        cfg = Config(name="conv").with_changes(
+            mesh=mesh, solver={"element_degree": degree, "quadrature_degree": qdeg}
+        )
+        t0 = time.perf_counter()
+        model = SkinModel(cfg, MPI.COMM_WORLD, mesh_dir=mesh_dir)
+        frames = model.simulate(SkinParams(**PARAMS), Design(**DESIGN))
+        runs[label] = dict(
+            xy=frames.xy,
+            strain=frames.strain[-1],
+            edges=inplane_coordinates(cfg.mesh),
+            dofs=model.n_dofs,
+            seconds=time.perf_counter() - t0,
+        )
+        print(label, model.n_dofs, "dofs", f"{runs[label]['seconds']:.1f} s", flush=True)
+
+    def rel_l2(coarse, fine):
+        avg = coarse_average(runs[fine]["xy"], runs[fine]["strain"], runs[coarse]["xy"], runs[coarse]["edges"])
+        a = runs[coarse]["strain"][:, :2]
+        return float(np.linalg.norm(a - avg[:, :2]) / np.linalg.norm(avg[:, :2]))
+
+    pairs = [
+        ("Q1 h=2", "Q1 h=1"),
+        ("Q1 h=1", "Q1 h=0.5 (paper)"),
+        ("Q1 h=2", "Q2 h=2"),
+        ("Q1 h=1", "Q2 h=1"),
+        ("Q2 h=2", "Q2 h=1"),
+        ("Q1 h=2", "Q2 h=1"),
+        ("Q1 h=1", "Q2 h=1"),
+    ]
+    table = [
+        {"coarse": c, "fine": f, "relative_l2_change_exx_eyy": rel_l2(c, f)} for c, f in pairs
+    ]
+    meta = {k: {"dofs": v["dofs"], "seconds": v["seconds"], "max_abs_exx_eyy": np.abs(v["strain"][:, :2]).max(0).tolist()} for k, v in runs.items()}
+    for row in table:
+        print(f"{row['coarse']:>18} vs {row['fine']:<18} {row['relative_l2_change_exx_eyy']:.4f}")
+    merge_results("convergence", {"params": PARAMS, "design": DESIGN, "runs": meta, "table": table})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("part", choices=["timing", "convergence", "run-one"])
+    parser.add_argument("args", nargs="*")
+    parser.add_argument("--config", default="paper")
+    parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--mesh-dir", default="meshes")
+    a = parser.parse_args()
+    if a.part == "run-one":
+        run_one(a.args[0], a.args[1], a.mesh_dir)
+    elif a.part == "timing":
+        timing(a.config, a.ranks, a.mesh_dir)
+    else:
+        convergence(a.mesh_dir)
+
+
+if __name__ == "__main__":
+    main()
