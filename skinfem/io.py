@@ -209,8 +209,6 @@ class FieldWriter:
     """
 
     def __init__(self, model, path: Path | str):
-        import basix  # noqa: F401
-
         from skinfem.fenics import dolfinx
         from skinfem.strain import SkinStrainSampler
 

@@ -224,10 +224,8 @@ def build_mesh(config: Config, path: Path | str) -> MeshInfo:
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
         gmsh.option.setNumber("Mesh.Binary", 1)
         gmsh.write(str(tmp))
-        counts = {}
-        for name, dim in (("all", 3),):
-            types, tags, _ = gmsh.model.mesh.getElements(dim)
-            counts[name] = sum(len(t) for t in tags)
+        _, tags, _ = gmsh.model.mesh.getElements(3)
+        n_cells = sum(len(t) for t in tags)
         n_skin = 0
         for vol in skin_vols:
             _, tags, _ = gmsh.model.mesh.getElements(3, vol)
@@ -239,7 +237,7 @@ def build_mesh(config: Config, path: Path | str) -> MeshInfo:
         if initialized_here:
             gmsh.finalize()
     tmp.replace(path)
-    return MeshInfo(path, counts["all"], n_skin, n_nodes, file_sha256(path))
+    return MeshInfo(path, n_cells, n_skin, n_nodes, file_sha256(path))
 
 
 def ensure_mesh(config: Config, directory: Path | str = DEFAULT_MESH_DIR, comm=None) -> Path:
