@@ -1,6 +1,6 @@
-"""Command line of skinfem: ``skinid mesh`` and ``skinid simulate`` (also ``python -m skinfem``).
+"""Command line of skinfem: ``skinid mesh|simulate|sweep|merge|info`` (also ``python -m skinfem``).
 
-Both run under ``mpirun -n k``. Errors in the input are reported as one line on stderr with
+``mesh``, ``simulate`` and ``sweep`` run under ``mpirun -n k``. Errors in the input are reported as one line on stderr with
 a non-zero exit status; nothing is half-written.
 """
 
@@ -44,6 +44,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha22", type=float, required=True, help="membrane eigen-strain along y")
     p.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
     p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf)")
+
+    p = sub.add_parser("sweep", help="Latin hypercube x designs -> dataset (.h5), resumable")
+    _add_config(p)
+    p.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
+    p.add_argument("--resume", action="store_true", help="complete an interrupted sweep")
+    p.add_argument(
+        "--retry-failed", action="store_true", help="with --resume: rerun failed simulations"
+    )
+    p.add_argument("--shard", default="0/1", help="run shard i of n (0 <= i < n), e.g. 3/16")
+    p.add_argument(
+        "--ranks-per-sim", type=int, default=1, help="MPI ranks per simulation (default 1)"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("merge", help="join the shard files of one sweep")
+    p.add_argument("shards", type=Path, nargs="+", help="shard datasets (.h5)")
+    p.add_argument("--out", type=Path, required=True, help="merged dataset (.h5)")
+
+    p = sub.add_parser("info", help="summary of a dataset")
+    p.add_argument("data", type=Path, help="dataset (.h5)")
     return parser
 
 
@@ -65,7 +85,13 @@ def cmd_mesh(args, comm) -> int:
 
 
 def cmd_simulate(args, comm) -> int:
-    from skinfem.io import FieldWriter, create_dataset, write_atomically, write_simulation
+    from skinfem.io import (
+        STATUS_OK,
+        FieldWriter,
+        create_dataset,
+        write_atomically,
+        write_simulation,
+    )
     from skinfem.model import SkinModel
     from skinfem.params import Design, SkinParams
 
@@ -85,8 +111,6 @@ def cmd_simulate(args, comm) -> int:
         return 0
 
     def write(tmp: Path) -> None:
-        import h5py
-
         create_dataset(
             tmp,
             config,
@@ -98,8 +122,9 @@ def cmd_simulate(args, comm) -> int:
             split=np.zeros(1),
             mesh_sha256=model.mesh_sha256,
         )
-        with h5py.File(tmp, "a") as f:
-            write_simulation(f, 0, 0, frames.strain, 1, "", sum(frames.newton_iterations))
+        write_simulation(
+            tmp, 0, 0, frames.strain, STATUS_OK, "", sum(frames.newton_iterations), frames.seconds
+        )
 
     write_atomically(args.out, write)
     last = frames.strain[-1]
@@ -114,7 +139,51 @@ def cmd_simulate(args, comm) -> int:
     return 0
 
 
-COMMANDS = {"mesh": cmd_mesh, "simulate": cmd_simulate}
+def cmd_sweep(args, comm) -> int:
+    from skinfem.sweep import parse_shard, run_sweep
+
+    config = load_config(args.config)
+    report = run_sweep(
+        config,
+        args.out,
+        resume=args.resume,
+        retry_failed=args.retry_failed,
+        shard=parse_shard(args.shard),
+        ranks_per_sim=args.ranks_per_sim,
+        mesh_dir=args.mesh_dir,
+        comm=comm,
+        progress=not args.quiet,
+    )
+    if report is not None:
+        print(report)
+    return 0
+
+
+def cmd_merge(args, comm) -> int:
+    from skinfem.sweep import merge_datasets
+
+    if comm.rank == 0:
+        data = merge_datasets(args.shards, args.out)
+        done = np.count_nonzero(data.status)
+        print(f"merged {len(args.shards)} shards: {done} of {data.status.size} simulations\nwrote {args.out}")
+    return 0
+
+
+def cmd_info(args, comm) -> int:
+    from skinfem.io import StrainDataset, dataset_summary
+
+    if comm.rank == 0:
+        print(dataset_summary(StrainDataset.open(args.data)))
+    return 0
+
+
+COMMANDS = {
+    "mesh": cmd_mesh,
+    "simulate": cmd_simulate,
+    "sweep": cmd_sweep,
+    "merge": cmd_merge,
+    "info": cmd_info,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

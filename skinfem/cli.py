@@ -12,6 +12,9 @@ import sys
 ROUTES: dict[str, tuple[str, str]] = {
     "mesh": ("skinfem.__main__", "generate the gmsh mesh of a configuration"),
     "simulate": ("skinfem.__main__", "one forward simulation -> dataset (.h5)"),
+    "sweep": ("skinfem.__main__", "Latin-hypercube sweep -> dataset (.h5), resumable, sharded"),
+    "merge": ("skinfem.__main__", "join sweep shards into one dataset"),
+    "info": ("skinfem.__main__", "summary of a dataset"),
 }
 
 

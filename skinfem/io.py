@@ -5,12 +5,20 @@ Dataset layout (one file per sweep or simulation; see README "File formats"):
 - ``/params`` (n_mat, 5) float64; attrs ``names``, ``units``, ``lower``, ``upper``
 - ``/designs`` (n_des, 2) float64 (alpha11, alpha22); ``/t`` (n_frames,) load fractions
 - ``/cells/xy`` (n_cells, 2) skin-cell centroids [mm]; ``/cells/volume`` (n_cells,) [mm^3]
-- ``/strain`` (n_mat, n_des, n_frames, n_cells, 3) float32 log strain (xx, yy, xy), chunked
-  per simulation; NaN where not (successfully) run
+- ``/strain`` (n_mat, n_des, n_frames, n_cells, 3) float32 log strain (xx, yy, xy); one
+  simulation is one contiguous block. Valid only where ``status == 1`` (NaN for failed
+  simulations, undefined for those not run: read through :meth:`StrainDataset.strain`)
 - ``/status`` (n_mat, n_des) int8: 0 not run, 1 converged, -1 failed; ``/messages`` likewise
 - ``/newton_iterations`` (n_mat, n_des) int32 total Newton iterations of the simulation
+- ``/seconds`` (n_mat, n_des) float32 wall time of the simulation
 - ``/split`` (n_mat,) int8: 0 train, 1 test
 - root attrs: ``config`` (TOML), ``versions`` (JSON), ``mesh_sha256``, ``created``, ``seed``
+
+Kill safety: every dataset is allocated in full when the file is created (contiguous layout,
+early allocation), so recording a simulation only overwrites bytes at fixed offsets and never
+touches HDF5 metadata. The strain block is written and flushed before the status byte, and the
+file is closed between simulations: a process killed at any moment leaves a readable file in
+which every simulation with ``status != 0`` is complete.
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ from skinfem.config import PARAM_NAMES, PARAM_UNITS, Config, config_from_toml
 
 STATUS_NOT_RUN, STATUS_OK, STATUS_FAILED = 0, 1, -1
 FORMAT_VERSION = 1
+MESSAGE_BYTES = 240  # fixed-length messages keep the file layout static
 
 
 def package_versions() -> dict[str, str]:
@@ -94,33 +103,55 @@ def create_dataset(
             "strain",
             shape=(n_mat, n_des, n_frames, n_cells, 3),
             dtype=np.float32,
-            chunks=(1, 1, n_frames, n_cells, 3),
-            fillvalue=np.nan,
+            dcpl=_early_allocation(),
+            fill_time="never",  # unwritten blocks stay sparse on disk; status says what is valid
         )
         f.create_dataset("status", data=np.zeros((n_mat, n_des), dtype=np.int8))
-        f.create_dataset("messages", shape=(n_mat, n_des), dtype=h5py.string_dtype())
+        f.create_dataset("messages", data=np.zeros((n_mat, n_des), dtype=f"S{MESSAGE_BYTES}"))
         f.create_dataset("newton_iterations", data=np.zeros((n_mat, n_des), dtype=np.int32))
+        f.create_dataset("seconds", data=np.zeros((n_mat, n_des), dtype=np.float32))
         f.create_dataset("split", data=np.asarray(split, dtype=np.int8))
 
 
+def _early_allocation():
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    return dcpl
+
+
+def _encode_message(message: str) -> bytes:
+    return message.encode("utf-8")[:MESSAGE_BYTES]
+
+
 def write_simulation(
-    f: h5py.File,
+    path: Path | str,
     i_mat: int,
     i_des: int,
     strain: np.ndarray | None,
     status: int,
     message: str = "",
     newton_iterations: int = 0,
+    seconds: float = 0.0,
 ) -> None:
-    """Store one simulation's frames (n_frames, n_cells, 3) and its status, then flush."""
-    if strain is not None:
-        if not np.all(np.isfinite(strain)):
-            raise ValueError(f"simulation ({i_mat}, {i_des}) produced non-finite strains")
-        f["strain"][i_mat, i_des] = strain.astype(np.float32)
-    f["messages"][i_mat, i_des] = message
-    f["newton_iterations"][i_mat, i_des] = newton_iterations
-    f["status"][i_mat, i_des] = status
-    f.flush()
+    """Record one simulation: frames (n_frames, n_cells, 3) first, then its status.
+
+    A failed simulation (``status = -1``) stores NaN strains and its message. Non-finite
+    strains of a converged simulation are refused (``ValueError``).
+    """
+    with h5py.File(path, "r+") as f:
+        block = f["strain"]
+        if status == STATUS_OK:
+            if strain is None or not np.all(np.isfinite(strain)):
+                raise ValueError(f"simulation ({i_mat}, {i_des}) produced non-finite strains")
+            block[i_mat, i_des] = np.asarray(strain, dtype=np.float32)
+        else:
+            block[i_mat, i_des] = np.full(block.shape[2:], np.nan, dtype=np.float32)
+        f.flush()
+        f["messages"][i_mat, i_des] = _encode_message(message)
+        f["newton_iterations"][i_mat, i_des] = newton_iterations
+        f["seconds"][i_mat, i_des] = seconds
+        f.flush()
+        f["status"][i_mat, i_des] = status
 
 
 @dataclass
@@ -138,9 +169,12 @@ class StrainDataset:
     volume: np.ndarray
     status: np.ndarray
     messages: np.ndarray
+    newton_iterations: np.ndarray
+    seconds: np.ndarray
     split: np.ndarray
     mesh_sha256: str
     versions: dict
+    created: str
 
     @classmethod
     def open(cls, path: Path | str) -> "StrainDataset":
@@ -176,16 +210,80 @@ class StrainDataset:
                 xy=f["cells/xy"][...],
                 volume=f["cells/volume"][...],
                 status=f["status"][...],
-                messages=f["messages"].asstr()[...],
+                messages=np.char.decode(f["messages"][...], "utf-8"),
+                newton_iterations=f["newton_iterations"][...],
+                seconds=f["seconds"][...],
                 split=f["split"][...],
                 mesh_sha256=str(f.attrs["mesh_sha256"]),
                 versions=json.loads(f.attrs["versions"]),
+                created=str(f.attrs["created"]),
             )
 
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """(n_mat, n_des, n_frames, n_cells)."""
+        return len(self.params), len(self.designs), len(self.t), len(self.xy)
+
     def strain(self, i_mat=slice(None), i_des=slice(None), i_frame=slice(None)) -> np.ndarray:
-        """Read a slice of ``/strain`` (float32, NaN where not run)."""
+        """Read a slice of ``/strain`` (float32), NaN wherever the simulation did not converge.
+
+        Indices are ints or slices (at most one of them a list, as in h5py).
+        """
         with h5py.File(self.path, "r") as f:
-            return f["strain"][i_mat, i_des, i_frame]
+            data = f["strain"][i_mat, i_des, i_frame]
+        ok = self.status[i_mat, i_des] == STATUS_OK
+        if np.ndim(ok) == 0:
+            if not ok:
+                data[...] = np.nan
+        else:
+            data[~ok] = np.nan
+        return data
+
+
+def dataset_summary(data: StrainDataset) -> str:
+    """Human-readable summary: sizes, status counts, split, strain ranges, configuration."""
+    n_mat, n_des, n_frames, n_cells = data.shape
+    counts = {name: int(np.count_nonzero(data.status == code)) for name, code in
+              (("converged", STATUS_OK), ("failed", STATUS_FAILED), ("not run", STATUS_NOT_RUN))}
+    lines = [
+        f"{data.path}: skinid dataset, config '{data.config.name}', created {data.created}",
+        f"  {n_mat} materials x {n_des} designs x {n_frames} frames x {n_cells} skin cells "
+        f"({data.path.stat().st_size / 1e6:.1f} MB on disk)",
+        "  simulations: " + ", ".join(f"{v} {k}" for k, v in counts.items()),
+        f"  split: {int(np.sum(data.split == 0))} train, {int(np.sum(data.split == 1))} test "
+        f"materials (test: {', '.join(map(str, np.flatnonzero(data.split)))})",
+        "  parameter box: " + ", ".join(
+            f"{n} [{lo:.4g}, {hi:.4g}] {u}"
+            for n, u, lo, hi in zip(PARAM_NAMES, PARAM_UNITS, data.lower, data.upper)
+        ),
+        "  designs (alpha11, alpha22): " + ", ".join(f"({a:+.3g}, {b:+.3g})" for a, b in data.designs),
+    ]
+    ok = data.status == STATUS_OK
+    if ok.any():
+        low, high = np.full(3, np.inf), np.full(3, -np.inf)
+        for i in np.flatnonzero(ok.any(1)):  # one material at a time: bounded memory
+            block = data.strain(i)[ok[i]]
+            low = np.minimum(low, np.nanmin(block, axis=(0, 1, 2)))
+            high = np.maximum(high, np.nanmax(block, axis=(0, 1, 2)))
+        lines.append(
+            "  log strain range: " + ", ".join(
+                f"E_{c} [{lo:+.4f}, {hi:+.4f}]" for c, lo, hi in zip(("xx", "yy", "xy"), low, high)
+            )
+        )
+        secs = data.seconds[ok]
+        its = data.newton_iterations[ok]
+        lines.append(
+            f"  per simulation: {secs.mean():.2f} s (max {secs.max():.2f} s), "
+            f"{its.mean():.1f} Newton iterations"
+        )
+    failed = np.argwhere(data.status == STATUS_FAILED)
+    for i, j in failed[:5]:
+        lines.append(f"  failed ({i}, {j}): {data.messages[i, j]}")
+    if len(failed) > 5:
+        lines.append(f"  ... and {len(failed) - 5} more failures")
+    lines.append(f"  mesh sha256 {data.mesh_sha256[:16]}..., versions: "
+                 + ", ".join(f"{k} {v}" for k, v in data.versions.items()))
+    return "\n".join(lines)
 
 
 def write_atomically(path: Path | str, write) -> Path:

@@ -1,7 +1,5 @@
 """The command line: simulate end to end (serial and under mpirun), and clear input errors."""
 
-import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -10,18 +8,10 @@ import numpy as np
 import pytest
 
 from skinfem.io import StrainDataset
+from tests.cli_helpers import MPIRUN, skinid, skinid_env
 
 MATERIAL = ["--mu", "0.0012", "--k1", "0.017", "--k2", "12", "--kappa", "0.28", "--theta", "30"]
 DESIGN = ["--alpha11", "0.05", "--alpha22", "-0.05"]
-MPIRUN = shutil.which("mpirun", path=str(Path(sys.executable).parent)) or shutil.which("mpirun")
-
-
-def skinid(*args, ranks: int = 1, cwd=None):
-    cmd = [sys.executable, "-m", "skinfem.cli", *args]
-    if ranks > 1:
-        cmd = [MPIRUN, "-n", str(ranks), *cmd]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=env, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +56,9 @@ def test_two_ranks_equal_serial_in_float64(small_model, mesh_dir, tmp_path):
 
     out = tmp_path / "mpi.npy"
     script = Path(__file__).with_name("mpi_simulate.py")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
     res = subprocess.run(
         [MPIRUN, "-n", "2", sys.executable, str(script), str(mesh_dir), str(out)],
-        capture_output=True, text=True, env=env, timeout=600,
+        capture_output=True, text=True, env=skinid_env(), timeout=600,
     )
     assert res.returncode == 0, res.stderr
     frames = small_model.simulate(SkinParams(1.2e-3, 0.017, 12.0, 0.28, 30.0), Design(0.05, -0.05))
