@@ -15,6 +15,7 @@ ROUTES: dict[str, tuple[str, str]] = {
     "sweep": ("skinfem.__main__", "Latin-hypercube sweep -> dataset (.h5), resumable, sharded"),
     "merge": ("skinfem.__main__", "join sweep shards into one dataset"),
     "info": ("skinfem.__main__", "summary of a dataset"),
+    "surrogate": ("surrogate.__main__", "fit | validate the PCA + GP emulator"),
 }
 
 

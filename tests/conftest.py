@@ -26,3 +26,26 @@ def small_model(small_config, mesh_dir):
     from skinfem.model import SkinModel
 
     return SkinModel(small_config, mesh_dir=mesh_dir)
+
+
+@pytest.fixture(scope="session")
+def small_dataset(tmp_path_factory, mesh_dir):
+    """The ``small`` preset sweep (80 simulations), run on 2 MPI groups when mpirun exists."""
+    from tests.cli_helpers import MPIRUN, skinid
+
+    out = tmp_path_factory.mktemp("small") / "small.h5"
+    ranks = 2 if MPIRUN else 1
+    res = skinid("sweep", "--config", "small", "--mesh-dir", mesh_dir, "--out", out, "--quiet", ranks=ranks)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+@pytest.fixture(scope="session")
+def small_emulator(small_dataset, tmp_path_factory):
+    """An emulator of the small sweep (GPs on half of the training rows), saved and reloaded."""
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator, fit_emulator
+
+    emulator = fit_emulator(StrainDataset.open(small_dataset), gp_fraction=0.5, restarts=1, seed=0)
+    directory = emulator.save(tmp_path_factory.mktemp("emulator") / "emu")
+    return directory

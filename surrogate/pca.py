@@ -1,0 +1,88 @@
+"""Principal components of strain fields, one strain component at a time.
+
+Each field (one row: the n_cells values of E_xx, say) is standardised per cell with the
+training data's mean and standard deviation (as in the paper), then projected on the leading
+principal directions. ``n_components`` is an int (fixed M) or a float in (0, 1): the smallest
+M whose cumulative explained variance reaches it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class StrainPCA:
+    """PCA of standardised fields (scikit-learn style: ``fit``/``transform``/``inverse_transform``).
+
+    Fitted attributes:
+        mean_, scale_: (n_cells,) per-cell centring and scaling [strain].
+        components_: (M, n_cells) orthonormal principal directions (standardised units).
+        explained_variance_ratio_: (min(n_rows, n_cells),) of every direction, descending;
+            the first M belong to the retained components.
+        n_components_: M.
+    """
+
+    def __init__(self, n_components: int | float = 0.99):
+        self.n_components = n_components
+
+    def fit(self, fields: np.ndarray) -> "StrainPCA":
+        """Fit on training fields (n_rows, n_cells)."""
+        fields = np.asarray(fields, dtype=float)
+        if fields.ndim != 2 or len(fields) < 2:
+            raise ValueError(f"fields must be (n_rows >= 2, n_cells), got {fields.shape}")
+        if not np.all(np.isfinite(fields)):
+            raise ValueError("fields contain NaN or inf (failed simulations must be dropped first)")
+        self.mean_ = fields.mean(axis=0)
+        scale = fields.std(axis=0)
+        self.scale_ = np.where(scale > 1e-12 * max(scale.max(), 1e-300), scale, 1.0)
+        z = (fields - self.mean_) / self.scale_
+        _, s, vt = np.linalg.svd(z, full_matrices=False)
+        variance = s**2
+        self.explained_variance_ratio_ = variance / variance.sum()
+        n = self.n_components
+        if isinstance(n, float) and 0 < n < 1:
+            cumulative = np.cumsum(self.explained_variance_ratio_)
+            m = int(np.searchsorted(cumulative, n) + 1)
+        elif isinstance(n, int) and 1 <= n <= len(s):
+            m = n
+        else:
+            raise ValueError(f"n_components must be an int in [1, {len(s)}] or a float in (0, 1), got {n!r}")
+        self.n_components_ = m
+        # sign convention: the largest-magnitude entry of each direction is positive
+        signs = np.sign(vt[np.arange(m), np.argmax(np.abs(vt[:m]), axis=1)])
+        self.components_ = vt[:m] * signs[:, None]
+        return self
+
+    def transform(self, fields: np.ndarray) -> np.ndarray:
+        """PC weights (n_rows, M) of fields (n_rows, n_cells)."""
+        return ((np.asarray(fields, dtype=float) - self.mean_) / self.scale_) @ self.components_.T
+
+    def inverse_transform(self, weights: np.ndarray) -> np.ndarray:
+        """Fields (n_rows, n_cells) from PC weights (n_rows, M)."""
+        return (np.asarray(weights, dtype=float) @ self.components_) * self.scale_ + self.mean_
+
+    def explained_variance(self, fields: np.ndarray) -> np.ndarray:
+        """Cumulative share of the standardised variance of ``fields`` captured by 1..M PCs."""
+        z = (np.asarray(fields, dtype=float) - self.mean_) / self.scale_
+        z -= z.mean(axis=0)
+        total = np.sum(z**2)
+        w = z @ self.components_.T
+        return np.cumsum(np.sum(w**2, axis=0)) / total
+
+    def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        return {
+            f"{prefix}mean": self.mean_,
+            f"{prefix}scale": self.scale_,
+            f"{prefix}components": self.components_,
+            f"{prefix}explained_variance_ratio": self.explained_variance_ratio_,
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str) -> "StrainPCA":
+        pca = cls(n_components=int(len(arrays[f"{prefix}components"])))
+        pca.mean_ = np.asarray(arrays[f"{prefix}mean"])
+        pca.scale_ = np.asarray(arrays[f"{prefix}scale"])
+        pca.components_ = np.asarray(arrays[f"{prefix}components"])
+        pca.explained_variance_ratio_ = np.asarray(arrays[f"{prefix}explained_variance_ratio"])
+        pca.n_components_ = len(pca.components_)
+        return pca

@@ -1,0 +1,140 @@
+"""Validation of an emulator on held-out materials (the dataset's test split).
+
+Every converged (design, frame) of every test material is one validation row. Reported:
+R^2 of each retained PC weight, and the field error of the emulator in strain units -- both
+against the simulated field and against its own PCA reconstruction (the PCA floor), so one
+can see whether the PCA truncation or the GPs dominate.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from skinfem.io import StrainDataset
+from surrogate.emulator import Emulator, TrainingRows
+
+
+def r2_score(true: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """Coefficient of determination per column of (n, k) arrays."""
+    ss_res = np.sum((true - pred) ** 2, axis=0)
+    ss_tot = np.sum((true - true.mean(0)) ** 2, axis=0)
+    return 1.0 - ss_res / ss_tot
+
+
+def validate(emulator: Emulator, data: StrainDataset) -> tuple[dict, dict]:
+    """Scores on the test materials of ``data``.
+
+    Returns:
+        (report, arrays): the JSON-able report and the true/predicted weights for plots.
+    """
+    if data.mesh_sha256 != emulator.meta.get("mesh_sha256"):
+        raise ValueError(f"'{data.path}' was simulated on another mesh than the emulator's data")
+    test = np.flatnonzero(data.split == 1)
+    if len(test) == 0:
+        raise ValueError(f"'{data.path}' has no test materials (sweep.n_test = 0)")
+    rows = TrainingRows.from_dataset(data, test)
+    fields = emulator.dataset_fields(rows.fields)
+    true_w = emulator.weights_of_fields(fields)
+    with torch.no_grad():
+        mean, var = emulator.predict_weights(torch.as_tensor(rows.inputs))
+    pred_w, pred_var = mean.numpy(), var.numpy()
+    pred_fields = emulator.fields_of_weights(pred_w)
+    floor_fields = emulator.fields_of_weights(true_w)
+    r2 = r2_score(true_w, pred_w)
+    z = (true_w - pred_w) / np.sqrt(pred_var)
+    report = {"test_materials": test.tolist(), "n_rows": int(len(rows.index)), "components": {}}
+    for k, (c, sl) in enumerate(emulator.weight_slices().items()):
+        err = pred_fields[..., k] - fields[..., k]
+        floor = floor_fields[..., k] - fields[..., k]
+        rms = float(np.sqrt(np.mean(fields[..., k] ** 2)))
+        report["components"][c] = {
+            "r2_per_pc": r2[sl].tolist(),
+            "min_r2": float(r2[sl].min()),
+            "field_rmse": float(np.sqrt(np.mean(err**2))),
+            "field_rmse_relative": float(np.sqrt(np.mean(err**2)) / rms),
+            "pca_floor_rmse": float(np.sqrt(np.mean(floor**2))),
+            "field_max_abs_error": float(np.abs(err).max()),
+            "field_rms": rms,
+            "weight_z_rms": np.sqrt(np.mean(z[:, sl] ** 2, axis=0)).tolist(),
+        }
+    arrays = {"true": true_w, "pred": pred_w, "sd": np.sqrt(pred_var), "index": rows.index}
+    return report, arrays
+
+
+def plot_predicted_vs_true(emulator: Emulator, arrays: dict, path: Path | str) -> Path:
+    """The paper's Fig. 5: predicted vs simulated PC weight, one panel per PC and component."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    slices = emulator.weight_slices()
+    n_cols = max(emulator.n_weights.values())
+    fig, axes = plt.subplots(len(slices), n_cols, figsize=(2.3 * n_cols, 2.4 * len(slices)), squeeze=False)
+    for r, (c, sl) in enumerate(slices.items()):
+        for j in range(n_cols):
+            ax = axes[r, j]
+            if j >= sl.stop - sl.start:
+                ax.axis("off")
+                continue
+            g = sl.start + j
+            t, p = arrays["true"][:, g], arrays["pred"][:, g]
+            ax.scatter(t, p, s=3, alpha=0.5, color="C0")
+            lim = [min(t.min(), p.min()), max(t.max(), p.max())]
+            ax.plot(lim, lim, color="k", lw=0.8)
+            ax.set_title(f"E_{c} PC{j + 1}  R²={r2_score(t[:, None], p[:, None])[0]:.3f}", fontsize=9)
+            ax.tick_params(labelsize=7)
+            if j == 0:
+                ax.set_ylabel("emulator weight [-]", fontsize=8)
+            if r == len(slices) - 1:
+                ax.set_xlabel("simulated weight [-]", fontsize=8)
+    fig.suptitle("PC weights of held-out materials: emulator vs finite elements", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 20) -> Path:
+    """Cumulative explained variance of the training PCA per component (the paper's Fig. 4)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for c, pca in emulator.pcas.items():
+        ratio = np.cumsum(pca.explained_variance_ratio_)[:n_max]
+        ax.plot(np.arange(1, len(ratio) + 1), ratio, "o-", ms=3, label=f"E_{c} (M = {pca.n_components_})")
+    ax.axhline(0.99, color="k", lw=0.8, ls="--", label="99 %")
+    ax.set_xlabel("number of principal components M")
+    ax.set_ylabel("cumulative explained variance [-]")
+    ax.set_ylim(top=1.0)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
+
+
+def validate_directory(directory: Path | str, data_path: Path | str | None = None) -> dict:
+    """Validate a saved emulator, write ``validation.json`` + ``validation.png`` into it."""
+    directory = Path(directory)
+    emulator = Emulator.load(directory)
+    data = StrainDataset.open(data_path or emulator.meta["dataset"])
+    report, arrays = validate(emulator, data)
+    (directory / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
+    plot_predicted_vs_true(emulator, arrays, directory / "validation.png")
+    meta_path = directory / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    meta["validation"] = {
+        c: {k: v[k] for k in ("min_r2", "field_rmse", "field_rmse_relative")}
+        for c, v in report["components"].items()
+    }
+    meta_path.write_text(json.dumps(meta, indent=2) + "\n")
+    return report

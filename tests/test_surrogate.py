@@ -1,0 +1,84 @@
+"""The emulator of the small sweep: exact persistence, sklearn agreement, held-out accuracy."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from skinfem.io import StrainDataset
+from surrogate.emulator import Emulator, model_inputs
+from surrogate.validation import validate, validate_directory
+from tests.cli_helpers import skinid
+
+
+@pytest.fixture(scope="module")
+def emulator(small_emulator):
+    return Emulator.load(small_emulator)
+
+
+def test_load_of_save_reproduces_predictions_exactly(emulator, tmp_path):
+    copy = Emulator.load(emulator.save(tmp_path / "copy"))
+    params = np.random.default_rng(0).uniform(emulator.lower[:5], emulator.upper[:5], size=(50, 5))
+    a = emulator.predict_fields(params, [0.05, -0.05], 1.0)
+    b = copy.predict_fields(params, [0.05, -0.05], 1.0)
+    assert a.shape == (50, len(emulator.xy), 2)
+    assert np.array_equal(a, b)
+
+
+def test_torch_predictions_match_sklearn(emulator):
+    params = np.random.default_rng(1).uniform(emulator.lower[:5], emulator.upper[:5], size=(20, 5))
+    x = model_inputs(params, [-0.05, 0.05], 0.7)
+    mean, var = emulator.predict_weights(torch.as_tensor(x))
+    unit = emulator.scale(x)
+    for g, gp in enumerate(emulator.sklearn_gps):
+        m, s = gp.predict(unit, return_std=True)
+        np.testing.assert_allclose(mean[:, g].detach().numpy(), m, rtol=0, atol=1e-8 * np.abs(m).max())
+        np.testing.assert_allclose(var[:, g].detach().sqrt().numpy(), s, rtol=0, atol=1e-8 * s.max())
+
+
+def test_held_out_materials_are_predicted(emulator, small_dataset):
+    """R² >= 0.99 for every retained PC of the noiseless held-out materials."""
+    report, arrays = validate(emulator, StrainDataset.open(small_dataset))
+    for c, r in report["components"].items():
+        assert r["min_r2"] >= 0.99, (c, r["r2_per_pc"])
+        # the emulator adds little to the PCA truncation error
+        assert r["field_rmse"] <= 1.5 * r["pca_floor_rmse"] + 1e-4
+    # standardised errors are of order one: the GP variance is calibrated (not over-confident by 10x)
+    z = (arrays["true"] - arrays["pred"]) / arrays["sd"]
+    assert 0.2 < np.sqrt(np.mean(z**2)) < 5
+
+
+def test_pca_projection_round_trip(emulator, small_dataset):
+    data = StrainDataset.open(small_dataset)
+    fields = emulator.dataset_fields(data.strain(0, 0, -1))[None]
+    w = emulator.weights_of_fields(fields)
+    again = emulator.weights_of_fields(emulator.fields_of_weights(w))
+    np.testing.assert_allclose(again, w, atol=1e-9)
+
+
+def test_cli_fit_and_validate(small_dataset, tmp_path):
+    out = tmp_path / "emu"
+    res = skinid("surrogate", "fit", "--data", small_dataset, "--out", out, "--n-components", "2",
+                 "--gp-fraction", "0.2", "--restarts", "0")
+    assert res.returncode == 0, res.stderr
+    assert "R² per PC" in res.stdout
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["n_weights"] == {"xx": 2, "yy": 2} and "validation" in meta
+    for name in ("validation.png", "explained_variance.png", "validation.json", "gp.npz", "pca.npz"):
+        assert (out / name).exists()
+    res = skinid("surrogate", "validate", "--emulator", out)
+    assert res.returncode == 0 and "E_yy" in res.stdout
+
+
+def test_other_format_versions_are_refused(emulator, tmp_path):
+    directory = emulator.save(tmp_path / "old")
+    meta = json.loads((directory / "meta.json").read_text())
+    meta["format_version"] = 99
+    (directory / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="format 99"):
+        Emulator.load(directory)
+    with pytest.raises(FileNotFoundError, match="not an emulator"):
+        Emulator.load(tmp_path)
+    res = skinid("surrogate", "validate", "--emulator", tmp_path)
+    assert res.returncode == 2 and "not an emulator" in res.stderr
