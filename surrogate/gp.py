@@ -71,10 +71,16 @@ class GPBank(torch.nn.Module):
     training covariance, ``y_mean``/``y_std`` (G,) target normalisation.
     """
 
+    ARRAYS = ("x_train", "length_scale", "constant", "noise", "alpha", "chol", "y_mean", "y_std")
+
     def __init__(self, arrays: dict[str, np.ndarray]):
         super().__init__()
-        for name in ("x_train", "length_scale", "constant", "noise", "alpha", "chol", "y_mean", "y_std"):
+        for name in self.ARRAYS:
             self.register_buffer(name, torch.as_tensor(np.asarray(arrays[name]), dtype=torch.float64))
+        # training inputs in length-scale units and their squared norms (G, n, d), (G, n)
+        scaled = self.x_train[None] / self.length_scale[:, None]
+        self.register_buffer("_scaled_train", scaled, persistent=False)
+        self.register_buffer("_scaled_train_sq", (scaled**2).sum(-1), persistent=False)
 
     @classmethod
     def from_sklearn(cls, gps: list[GaussianProcessRegressor]) -> "GPBank":
@@ -97,7 +103,7 @@ class GPBank(torch.nn.Module):
         )
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {name: buf.numpy() for name, buf in self.named_buffers()}
+        return {name: getattr(self, name).cpu().numpy() for name in self.ARRAYS}
 
     @property
     def n_gps(self) -> int:
@@ -106,8 +112,8 @@ class GPBank(torch.nn.Module):
     def cross_covariance(self, x: torch.Tensor) -> torch.Tensor:
         """k(x, x_train) without the white noise: (G, B, n) for x (B, d)."""
         a = x[None] / self.length_scale[:, None]  # (G, B, d)
-        b = self.x_train[None] / self.length_scale[:, None]  # (G, n, d)
-        sq = (a**2).sum(-1)[..., None] + (b**2).sum(-1)[:, None] - 2 * a @ b.transpose(1, 2)
+        b = self._scaled_train
+        sq = (a**2).sum(-1)[..., None] + self._scaled_train_sq[:, None] - 2 * a @ b.transpose(1, 2)
         return self.constant[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
 
     def forward(self, x: torch.Tensor, return_var: bool = True):

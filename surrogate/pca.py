@@ -57,6 +57,22 @@ class StrainPCA:
         """PC weights (n_rows, M) of fields (n_rows, n_cells)."""
         return ((np.asarray(fields, dtype=float) - self.mean_) / self.scale_) @ self.components_.T
 
+    def transform_masked(self, field: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weights (M,) of one field known only on ``mask`` (least squares on those cells).
+
+        Also returns the (M, n_masked) matrix P with weights = P @ z[mask], z the standardised
+        field, used to carry per-cell noise into weight space. With a full mask P is
+        ``components_`` and the weights equal :meth:`transform`.
+        """
+        mask = np.asarray(mask, dtype=bool)
+        if mask.all():
+            projector = self.components_
+        else:
+            a = self.components_[:, mask].T  # (n_masked, M)
+            projector = np.linalg.pinv(a)
+        z = (np.asarray(field, dtype=float)[mask] - self.mean_[mask]) / self.scale_[mask]
+        return projector @ z, projector
+
     def inverse_transform(self, weights: np.ndarray) -> np.ndarray:
         """Fields (n_rows, n_cells) from PC weights (n_rows, M)."""
         return (np.asarray(weights, dtype=float) @ self.components_) * self.scale_ + self.mean_

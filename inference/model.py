@@ -1,0 +1,220 @@
+"""The statistical model: uniform priors on the skin parameters, a Gaussian likelihood of the
+observed PC weights around the emulator's prediction.
+
+For observation o (one design alpha_o and load fraction t_o) and PC weight g of strain
+component c(g):
+
+    w_og ~ Normal(m_g(params, alpha_o t_o), v_og + s_og^2)
+
+with m, v the emulator's GP predictive mean and variance, and the observation noise s either
+- ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
+  (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
+- ``noise="known"``: the measurement's stated per-cell standard deviation carried through the
+  (masked) PCA projection (independent cells).
+Priors: Uniform on the emulator's training box for each of (mu, k1, k2, kappa, theta) --
+never hard-coded.
+
+GP variance: evaluating v at every leapfrog step costs O(n_gp^2) per GP (tens of ms for
+the paper-sized emulator), so by default (``gp_variance="mode"``) v is evaluated once at the
+posterior mode and held fixed; :meth:`SkinPosterior.gp_variance_spread` measures how much it
+changes over the posterior draws (reported in summary.json). ``gp_variance="exact"``
+re-evaluates it at every step.
+
+:class:`SkinPosterior` is a plain torch log density on an unconstrained vector (logit of the
+unit box, log of sigma) with the Jacobian terms; :func:`pyro_model` states the same model in
+Pyro (the reference the tests compare the potential with).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pyro
+import pyro.distributions as dist
+import torch
+
+from inference.observations import Observation
+from skinfem.config import PARAM_NAMES
+from surrogate.emulator import COMPONENTS, Emulator
+
+
+@dataclass
+class ObservedWeights:
+    """Observations projected on the emulator's PC basis.
+
+    Attributes:
+        design_inputs: (n_obs, 2) alpha11*t, alpha22*t.
+        weights: (n_obs, G) observed PC weights.
+        noise_var: (n_obs, G) known noise variance in weight units, or None.
+        truth: (5,) generating parameters when known.
+    """
+
+    design_inputs: np.ndarray
+    weights: np.ndarray
+    noise_var: np.ndarray | None
+    truth: np.ndarray | None
+
+    @classmethod
+    def project(cls, emulator: Emulator, observations: list[Observation]) -> "ObservedWeights":
+        if not observations:
+            raise ValueError("no observation given")
+        if any(len(o.fields) != len(emulator.xy) for o in observations):
+            raise ValueError("observation fields do not have one value per emulator skin cell")
+        rows, noise = [], []
+        for o in observations:
+            w, v = [], []
+            for c, pca in emulator.pcas.items():
+                k = COMPONENTS.index(c)
+                weights, projector = pca.transform_masked(o.fields[:, k], o.mask)
+                w.append(weights)
+                if o.sd is not None:
+                    per_cell = (o.sd[k] / pca.scale_[o.mask]) ** 2
+                    v.append(projector**2 @ per_cell)
+            rows.append(np.concatenate(w))
+            noise.append(np.concatenate(v) if v else None)
+        known = None if any(n is None for n in noise) else np.stack(noise)
+        truths = [o.truth for o in observations if o.truth is not None]
+        return cls(
+            design_inputs=np.stack([o.alpha * o.t for o in observations]),
+            weights=np.stack(rows),
+            noise_var=known,
+            truth=truths[0] if truths else None,
+        )
+
+
+class SkinPosterior:
+    """Log posterior of (mu, k1, k2, kappa, theta[, sigma_c...]) on an unconstrained vector.
+
+    Args:
+        noise: "halfcauchy" (unknown sigma per component) or "known" (from the measurement sd).
+        noise_scale: HalfCauchy scale of sigma [PC-weight units].
+        gp_variance: "mode" (fixed at the posterior mode, see module doc) or "exact".
+    """
+
+    def __init__(
+        self,
+        emulator: Emulator,
+        observed: ObservedWeights,
+        noise: str = "halfcauchy",
+        noise_scale: float = 1.0,
+        gp_variance: str = "exact",
+    ):
+        if noise not in ("halfcauchy", "known"):
+            raise ValueError(f"noise must be 'halfcauchy' or 'known', got '{noise}'")
+        if noise == "known" and observed.noise_var is None:
+            raise ValueError("noise='known' needs measurements with sd_exx, sd_eyy, sd_exy columns")
+        if gp_variance not in ("mode", "exact"):
+            raise ValueError(f"gp_variance must be 'mode' or 'exact', got '{gp_variance}'")
+        self.emulator = emulator
+        self.observed = observed
+        self.noise = noise
+        self.noise_scale = noise_scale
+        self.gp_variance = gp_variance
+        bounds = emulator.param_bounds
+        self.lower = torch.as_tensor(bounds[:, 0])
+        self.span = torch.as_tensor(bounds[:, 1] - bounds[:, 0])
+        self.design_inputs = torch.as_tensor(observed.design_inputs)
+        self.weights = torch.as_tensor(observed.weights)
+        self.component_of_weight = torch.as_tensor(
+            np.concatenate([[k] * m for k, m in enumerate(emulator.n_weights.values())])
+        )
+        self.noise_var = None if observed.noise_var is None else torch.as_tensor(observed.noise_var)
+        self.fixed_gp_var: torch.Tensor | None = None
+
+    # -- parametrisation -------------------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        sigmas = tuple(f"sigma_{c}" for c in self.emulator.components) if self.noise == "halfcauchy" else ()
+        return PARAM_NAMES + sigmas
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def constrain(self, u: torch.Tensor) -> torch.Tensor:
+        """Unconstrained (..., dim) -> (mu, k1, k2, kappa, theta [deg], sigma...) (..., dim)."""
+        params = self.lower + torch.sigmoid(u[..., :5]) * self.span
+        return torch.cat([params, torch.exp(u[..., 5:])], -1)
+
+    def unconstrain(self, values: torch.Tensor) -> torch.Tensor:
+        z = ((values[..., :5] - self.lower) / self.span).clamp(1e-9, 1 - 1e-9)
+        return torch.cat([torch.logit(z), torch.log(values[..., 5:])], -1)
+
+    # -- density ---------------------------------------------------------------------------
+    def predict(self, params: torch.Tensor, return_var: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """GP mean (n_obs, G) and variance at params (5,) for every observation."""
+        x = torch.cat([params.expand(len(self.design_inputs), 5), self.design_inputs], -1)
+        if return_var:
+            return self.emulator.predict_weights(x, return_var=True)
+        return self.emulator.predict_weights(x, return_var=False), None
+
+    def log_likelihood(self, params: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        exact = self.gp_variance == "exact" or self.fixed_gp_var is None
+        mean, var = self.predict(params, return_var=exact)
+        if not exact:
+            var = self.fixed_gp_var
+        noise = self.noise_var if self.noise == "known" else sigma[self.component_of_weight] ** 2
+        total = var + noise
+        resid = self.weights - mean
+        return -0.5 * torch.sum(resid**2 / total + torch.log(2 * math.pi * total))
+
+    def log_density(self, u: torch.Tensor) -> torch.Tensor:
+        """Log posterior density of the unconstrained vector u (dim,), Jacobian included."""
+        values = self.constrain(u)
+        params, sigma = values[:5], values[5:]
+        z = torch.sigmoid(u[:5])
+        log_jac = torch.sum(torch.log(self.span) + torch.log(z) + torch.log1p(-z)) + torch.sum(u[5:])
+        log_prior = -torch.sum(torch.log(self.span))
+        if len(sigma):
+            log_prior = log_prior + torch.sum(
+                dist.HalfCauchy(torch.tensor(self.noise_scale, dtype=u.dtype)).log_prob(sigma)
+            )
+        return self.log_likelihood(params, sigma) + log_prior + log_jac
+
+    def potential(self, sites: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Pyro's ``potential_fn``: minus the log density of ``sites["u"]``."""
+        return -self.log_density(sites["u"])
+
+    # -- helpers ---------------------------------------------------------------------------
+    def initial_sigma(self) -> np.ndarray:
+        """A data-driven starting noise level per component: RMS of the observed weights / 10."""
+        out = []
+        for k in range(len(self.emulator.components)):
+            w = self.weights[:, self.component_of_weight == k]
+            out.append(float(torch.sqrt(torch.mean(w**2))) / 10 + 1e-6)
+        return np.array(out)
+
+    def fix_gp_variance(self, params: np.ndarray) -> None:
+        """Hold the GP variance at its value at ``params`` (5,) (``gp_variance="mode"``)."""
+        with torch.no_grad():
+            self.fixed_gp_var = self.predict(torch.as_tensor(params), return_var=True)[1]
+
+    def gp_variance_spread(self, draws: np.ndarray, n: int = 50, seed: int = 0) -> dict:
+        """How the GP variance over ``n`` posterior draws (k, 5) compares with the fixed one."""
+        rng = np.random.default_rng(seed)
+        pick = draws[rng.choice(len(draws), size=min(n, len(draws)), replace=False)]
+        with torch.no_grad():
+            ratios = np.stack([
+                (self.predict(torch.as_tensor(p), True)[1] / self.fixed_gp_var).numpy() for p in pick
+            ])
+        return {"ratio_median": float(np.median(ratios)), "ratio_5": float(np.percentile(ratios, 5)),
+                "ratio_95": float(np.percentile(ratios, 95))}
+
+
+def pyro_model(posterior: SkinPosterior) -> None:
+    """The same model in Pyro's language (reference for :class:`SkinPosterior`)."""
+    lo, span = posterior.lower, posterior.span
+    params = torch.stack(
+        [pyro.sample(name, dist.Uniform(lo[i], lo[i] + span[i])) for i, name in enumerate(PARAM_NAMES)]
+    )
+    sigma = torch.stack(
+        [pyro.sample(name, dist.HalfCauchy(torch.tensor(posterior.noise_scale, dtype=torch.float64)))
+         for name in posterior.names[5:]]
+    ) if posterior.noise == "halfcauchy" else torch.zeros(0, dtype=torch.float64)
+    exact = posterior.gp_variance == "exact" or posterior.fixed_gp_var is None
+    mean, var = posterior.predict(params, return_var=exact)
+    var = var if exact else posterior.fixed_gp_var
+    noise = posterior.noise_var if posterior.noise == "known" else sigma[posterior.component_of_weight] ** 2
+    pyro.sample("weights", dist.Normal(mean, torch.sqrt(var + noise)).to_event(2), obs=posterior.weights)

@@ -1,0 +1,98 @@
+"""Figures of the inference package (matplotlib, written to PNG)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+LABELS = {
+    "mu": "μ [MPa]",
+    "k1": "k₁ [MPa]",
+    "k2": "k₂ [-]",
+    "kappa": "κ [-]",
+    "theta": "θ [deg]",
+}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
+    """Posterior pairs of the five skin parameters over the prior box (the paper's Fig. 7).
+
+    Diagonal: posterior histogram against the uniform prior density (grey); off-diagonal:
+    2-D histogram of the draws. The true value, when known, is drawn in red.
+    """
+    plt = _pyplot()
+    names = list(LABELS)
+    draws = samples.draws[..., :5].reshape(-1, 5)
+    bounds = samples.bounds
+    truth = samples.truth
+    fig, axes = plt.subplots(5, 5, figsize=(10, 10))
+    for i in range(5):
+        for j in range(5):
+            ax = axes[i, j]
+            if j > i:
+                ax.axis("off")
+                continue
+            if i == j:
+                ax.hist(draws[:, i], bins=40, range=bounds[i], density=True, color="C0", alpha=0.8)
+                ax.axhline(1 / np.ptp(bounds[i]), color="0.5", lw=1.5, label="prior")
+                ax.set_yticks([])
+            else:
+                ax.hist2d(draws[:, j], draws[:, i], bins=40, range=[bounds[j], bounds[i]], cmap="Blues")
+                if truth is not None:
+                    ax.plot(truth[j], truth[i], "r+", ms=12, mew=2)
+            if truth is not None and i == j:
+                ax.axvline(truth[i], color="r", lw=1.5, label="true")
+            ax.set_xlim(bounds[j])
+            if i == 4:
+                ax.set_xlabel(LABELS[names[j]], fontsize=11)
+            else:
+                ax.set_xticklabels([])
+            if j == 0 and i > 0:
+                ax.set_ylabel(LABELS[names[i]], fontsize=11)
+            elif i != j:
+                ax.set_yticklabels([])
+            ax.tick_params(labelsize=8)
+    axes[0, 0].legend(fontsize=8, loc="upper right")
+    fig.suptitle(title or "posterior (blue) against the uniform prior (grey); truth in red", fontsize=12)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title: str) -> Path:
+    """True value vs posterior median with 95 % intervals, one panel per parameter (Fig. 9)."""
+    plt = _pyplot()
+    names = list(LABELS)
+    fig, axes = plt.subplots(1, 5, figsize=(17, 3.6))
+    for k, (ax, n) in enumerate(zip(axes, names)):
+        true = np.array([r[n]["true"] for r in rows])
+        med = np.array([r[n]["median"] for r in rows])
+        lo = np.array([r[n]["q2.5"] for r in rows])
+        hi = np.array([r[n]["q97.5"] for r in rows])
+        covered = (lo <= true) & (true <= hi)
+        ax.errorbar(true, med, yerr=[med - lo, hi - med], fmt="o", ms=4, capsize=2,
+                    color="C0", ecolor="C0", alpha=0.8)
+        ax.plot(true[~covered], med[~covered], "o", color="r", ms=5, label="truth not covered")
+        ax.plot(bounds[k], bounds[k], "k--", lw=0.8)
+        ax.set_xlim(bounds[k])
+        ax.set_ylim(bounds[k])
+        ax.set_xlabel(f"true {LABELS[n]}")
+        ax.set_ylabel(f"posterior {LABELS[n]}")
+        ax.set_title(f"coverage {covered.mean():.0%}", fontsize=10)
+        ax.tick_params(labelsize=8)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
