@@ -16,6 +16,8 @@ ROUTES: dict[str, tuple[str, str]] = {
     "merge": ("skinfem.__main__", "join sweep shards into one dataset"),
     "info": ("skinfem.__main__", "summary of a dataset"),
     "surrogate": ("surrogate.__main__", "fit | validate the PCA + GP emulator"),
+    "infer": ("inference.__main__", "NUTS posterior of the skin parameters"),
+    "study": ("inference.__main__", "test-set | setups: many posteriors, accuracy and coverage"),
 }
 
 

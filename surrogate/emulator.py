@@ -242,6 +242,7 @@ def fit_emulator(
         "dataset": str(data.path.resolve()),
         "dataset_config": data.config.to_toml(),
         "mesh_sha256": data.mesh_sha256,
+        "block_half_length": data.config.mesh.length / 2,
         "train_materials": train.tolist(),
         "test_materials": np.flatnonzero(data.split == 1).tolist(),
         "n_training_rows": int(len(rows.index)),

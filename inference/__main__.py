@@ -1,0 +1,144 @@
+"""Command line of inference: ``skinid infer`` and ``skinid study test-set|setups``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _add_sampler(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--chains", type=int, default=4)
+    p.add_argument("--warmup", type=int, default=500)
+    p.add_argument("--draws", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--jobs", type=int, default=2, help="chains run in parallel (processes)")
+    p.add_argument("--gp-variance", choices=["exact", "mode"], default="exact",
+                   help="GP variance at every step (exact) or fixed at the mode (fast)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _ints(text: str | None) -> list[int] | None:
+    return None if text is None else [int(v) for v in text.replace(",", " ").split()]
+
+
+def build_parser(prog: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    if prog.endswith("infer"):
+        parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+        src = parser.add_mutually_exclusive_group(required=True)
+        src.add_argument("--data", type=Path, help="dataset (.h5): observe one of its materials")
+        src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
+        parser.add_argument("--material", type=int, help="with --data: material index")
+        parser.add_argument("--designs", help="with --data: design indices, e.g. '2' or '0,2,4' (default: all)")
+        parser.add_argument("--frames", help="with --data: frame indices, e.g. '-1' or '-3,-2,-1' (default: -1)")
+        parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
+                            help="unknown noise per component, or the measurement's sd columns")
+        parser.add_argument("--out", type=Path, required=True, help="output directory")
+        _add_sampler(parser)
+        return parser
+    sub = parser.add_subparsers(dest="study", required=True)
+    p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
+    p.add_argument("--emulator", type=Path, required=True)
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--designs", required=True, help="design indices, e.g. '2'")
+    p.add_argument("--frames", default="-1", help="frame indices (default -1)")
+    p.add_argument("--materials", help="subset of materials (default: the test split)")
+    p.add_argument("--out", type=Path, required=True)
+    _add_sampler(p)
+    p = sub.add_parser("setups", help="single vs multi-frame vs multi-membrane (the paper's Fig. 8)")
+    p.add_argument("--emulator", type=Path, required=True)
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--design", type=int, required=True, help="the single design")
+    p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
+    p.add_argument("--materials", help="subset of materials (default: the test split)")
+    p.add_argument("--out", type=Path, required=True)
+    _add_sampler(p)
+    return parser
+
+
+def settings_of(args):
+    from inference.studies import SamplerSettings
+
+    return SamplerSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed,
+                           n_jobs=args.jobs, gp_variance=args.gp_variance, progress=not args.quiet)
+
+
+def print_summary(summary: dict, out: Path) -> None:
+    print(f"{'':>8} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
+    for name, e in summary["parameters"].items():
+        true = f"{e['true']:.4g}" if "true" in e else ""
+        print(f"{name:>8} {e['median']:>10.4g} [{e['q2.5']:>10.4g}, {e['q97.5']:>10.4g}] "
+              f"{e['r_hat']:>6.3f} {min(e['ess_bulk'], e['ess_tail']):>6.0f} {true:>10}")
+    for w in summary["warnings"]:
+        print(f"warning: {w}")
+    print(f"{summary['divergences']} divergences, {summary['seconds']:.1f} s\nwrote {out}/posterior.nc, summary.json, corner.png")
+
+
+def cmd_infer(args) -> None:
+    from inference.observations import from_dataset, from_measurements
+    from inference.studies import posterior_of
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator
+
+    emulator = Emulator.load(args.emulator)
+    if args.data is not None:
+        if args.material is None:
+            raise ValueError("--data needs --material")
+        obs = from_dataset(StrainDataset.open(args.data), args.material, _ints(args.designs), _ints(args.frames))
+    else:
+        half = float(emulator.meta.get("block_half_length", 25.0))
+        obs = from_measurements(args.measurement, emulator.xy, half)
+    summary = posterior_of(emulator, obs, settings_of(args), args.out, noise=args.noise)
+    print_summary(summary, args.out)
+
+
+def cmd_study(args) -> None:
+    from inference.studies import setups_plot, test_set_study
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator
+
+    emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
+    materials = _ints(args.materials)
+    if args.study == "test-set":
+        res = test_set_study(emulator, data, _ints(args.designs), _ints(args.frames), settings_of(args),
+                             args.out, materials)
+        print(json.dumps(res, indent=2))
+        print(f"wrote {args.out}/study.json and accuracy.png")
+        return
+    n_des = len(data.designs)
+    others = [j for j in range(n_des) if j != args.design][: args.n - 1]
+    setups = {
+        "single": ([args.design], [-1]),
+        f"{args.n} frames": ([args.design], list(range(-args.n, 0))),
+        f"{args.n} membranes": ([args.design, *others], [-1]),
+    }
+    results = {
+        label: test_set_study(emulator, data, d, f, settings_of(args), args.out / label.replace(" ", "_"),
+                              materials, label)
+        for label, (d, f) in setups.items()
+    }
+    setups_plot(results, args.out / "setups.png")
+    print(json.dumps({k: v["median_interval_share_of_prior"] for k, v in results.items()}, indent=2))
+    print(f"wrote {args.out}/setups.png")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    command = argv[0] if argv and argv[0] in ("infer", "study") else "infer"
+    if argv and argv[0] in ("infer", "study"):
+        argv = argv[1:]
+    args = build_parser(f"skinid {command}").parse_args(argv)
+    from inference.observations import MeasurementError
+
+    try:
+        (cmd_infer if command == "infer" else cmd_study)(args)
+    except (MeasurementError, ValueError, FileNotFoundError) as exc:
+        print(f"skinid {command}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,199 @@
+"""Inference: the potential against Pyro's model, an exact linear-Gaussian posterior, a held-out
+material of the small sweep, measurement files and their conversion."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from inference.model import ObservedWeights, SkinPosterior, pyro_model
+from inference.observations import (
+    MeasurementError,
+    Observation,
+    from_dataset,
+    map_to_cells,
+    read_measurement,
+    to_log_strain,
+    write_measurement,
+)
+from inference.sampling import sample_posterior
+from skinfem.io import StrainDataset
+from surrogate.emulator import Emulator
+from tests.cli_helpers import skinid
+
+
+@pytest.fixture(scope="module")
+def emulator(small_emulator):
+    return Emulator.load(small_emulator)
+
+
+@pytest.fixture(scope="module")
+def data(small_dataset):
+    return StrainDataset.open(small_dataset)
+
+
+# -- the density -----------------------------------------------------------------------------
+@pytest.mark.parametrize("gp_variance", ["exact", "mode"])
+def test_potential_equals_pyro_models_potential(emulator, data, gp_variance):
+    from pyro.infer.mcmc.util import initialize_model
+
+    obs = from_dataset(data, 0, designs=[0, 2], frames=[-2, -1])
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance=gp_variance)
+    if gp_variance == "mode":
+        post.fix_gp_variance(data.params[1])
+    _, potential_fn, _, _ = initialize_model(pyro_model, model_args=(post,))
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        u = torch.as_tensor(rng.normal(size=post.dim))
+        sites = {name: u[k] for k, name in enumerate(post.names)}
+        expected = float(potential_fn(sites))
+        assert float(post.potential({"u": u})) == pytest.approx(expected, rel=1e-10, abs=1e-8)
+
+
+class LinearEmulator:
+    """Stand-in emulator with linear weights w = A x_unit + b and a constant variance."""
+
+    components = ("xx",)
+    n_weights = {"xx": 6}
+
+    def __init__(self, seed=0):
+        rng = np.random.default_rng(seed)
+        self.A = torch.as_tensor(rng.normal(size=(7, 6)))
+        self.b = torch.as_tensor(rng.normal(size=6))
+        self.param_bounds = np.array([[-50.0, 50.0]] * 5)
+        self.var = 1e-3
+
+    def predict_weights(self, x, return_var=True):
+        mean = x @ self.A + self.b
+        return (mean, torch.full_like(mean, self.var)) if return_var else mean
+
+
+def test_sampler_matches_an_exact_linear_gaussian_posterior():
+    """Known noise, linear mean, a prior box far wider than the posterior: the posterior is
+    Gaussian with covariance (A' S^-1 A)^-1; the sampler must match its mean and variance."""
+    emu = LinearEmulator()
+    truth = np.array([0.3, -0.2, 0.5, 0.1, -0.4])
+    design = np.array([[0.05, -0.05], [0.05, 0.0]])
+    noise_var = np.full((2, 6), 0.02)
+    rng = np.random.default_rng(1)
+    x = np.column_stack([np.tile(truth, (2, 1)), design])
+    w = (torch.as_tensor(x) @ emu.A + emu.b).numpy() + rng.normal(size=(2, 6)) * np.sqrt(noise_var + emu.var)
+    observed = ObservedWeights(design, w, noise_var, truth)
+    post = SkinPosterior(emu, observed, noise="known")
+    # exact posterior of the 5 parameters
+    A = emu.A.numpy()[:5].T  # (6, 5) per observation
+    prec = sum(A.T @ np.diag(1 / (noise_var[o] + emu.var)) @ A for o in range(2))
+    rhs = sum(A.T @ ((w[o] - emu.b.numpy() - design[o] @ emu.A.numpy()[5:]) / (noise_var[o] + emu.var)) for o in range(2))
+    cov = np.linalg.inv(prec)
+    mean = cov @ rhs
+    samples = sample_posterior(post, chains=2, warmup=300, draws=1500, seed=3, n_jobs=2, progress=False)
+    draws = samples.draws.reshape(-1, 5)
+    sd = np.sqrt(np.diag(cov))
+    n_eff = 1000  # conservative effective sample size
+    assert np.all(np.abs(draws.mean(0) - mean) < 4 * sd / np.sqrt(n_eff))
+    np.testing.assert_allclose(draws.std(0), sd, rtol=0.1)
+    summary = samples.summary()
+    assert summary["divergences"] == 0
+    assert all(e["r_hat"] < 1.01 for e in summary["parameters"].values())
+
+
+def test_held_out_material_is_identified(emulator, data, tmp_path):
+    """The paper's single "mixed" observation: true mu and theta inside the 95 % interval and
+    the intervals narrower than the prior."""
+    from inference.sampling import write_outputs
+
+    material = int(np.flatnonzero(data.split)[0])
+    mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
+    obs = from_dataset(data, material, designs=[mixed], frames=[-1])
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs))
+    samples = sample_posterior(post, chains=4, warmup=300, draws=400, seed=0, n_jobs=2, progress=False)
+    summary = write_outputs(samples, tmp_path)
+    for name in ("mu", "theta"):
+        e = summary["parameters"][name]
+        assert e["covered"], (name, e)
+        assert e["interval_share_of_prior"] < 0.8, (name, e)
+    assert (tmp_path / "corner.png").exists() and (tmp_path / "posterior.nc").exists()
+    import arviz as az
+
+    assert az.from_netcdf(tmp_path / "posterior.nc")["posterior"]["mu"].shape == (4, 400)
+
+
+# -- observations ------------------------------------------------------------------------------
+def test_masked_projection_recovers_weights_of_a_field_in_the_basis(emulator):
+    w = np.random.default_rng(0).normal(size=(1, sum(emulator.n_weights.values())))
+    fields = emulator.fields_of_weights(w)[0]
+    full = np.zeros((len(emulator.xy), 3))
+    full[:, :2] = fields
+    mask = np.random.default_rng(1).uniform(size=len(emulator.xy)) < 0.7
+    masked = np.where(mask[:, None], full, np.nan)
+    observed = ObservedWeights.project(emulator, [Observation(np.array([0.05, 0]), 1.0, masked, mask)])
+    np.testing.assert_allclose(observed.weights[0], w[0], atol=1e-8)
+
+
+def test_strain_measures_convert_to_log_strain():
+    stretch = np.array([1.1, 0.95])
+    green = (stretch**2 - 1) / 2
+    eng = stretch - 1
+    for measure, values in (("green", green), ("engineering", eng), ("log", np.log(stretch))):
+        out = to_log_strain(values[:1], values[1:], np.zeros(1), measure)
+        np.testing.assert_allclose(out[0], [np.log(1.1), np.log(0.95), 0.0], atol=1e-14)
+    # a rotated uniaxial stretch: log strain is the rotated ln(stretch)
+    c, s = np.cos(0.3), np.sin(0.3)
+    R = np.array([[c, -s], [s, c]])
+    E = R @ np.diag(green) @ R.T
+    L = R @ np.diag(np.log(stretch)) @ R.T
+    out = to_log_strain(E[0, 0:1], E[1, 1:2], E[0, 1:2], "green")
+    np.testing.assert_allclose(out[0], [L[0, 0], L[1, 1], L[0, 1]], atol=1e-14)
+
+
+def test_measurement_round_trip_and_interpolation(emulator, data, tmp_path):
+    obs = from_dataset(data, 0, designs=[2])[0]
+    path = write_measurement(tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t, sd=np.full((len(obs.fields), 3), 1e-3))
+    m = read_measurement(path, half_length=25)
+    np.testing.assert_allclose(m.strain, obs.fields, atol=1e-8)
+    # on a window of the block, interpolation masks the cells outside it
+    window = np.all(np.abs(emulator.xy) < 15, axis=1)
+    sub = write_measurement(tmp_path / "w.csv", emulator.xy[window], obs.fields[window], obs.alpha, obs.t)
+    mapped = map_to_cells(read_measurement(sub), emulator.xy)
+    assert mapped.mask.sum() <= window.sum() and mapped.mask.sum() > 0.8 * window.sum()
+    np.testing.assert_allclose(mapped.fields[mapped.mask], obs.fields[mapped.mask], atol=1e-8)
+
+
+GOOD = "# skinid-measurement v1\n# alpha11 = 0.05\n# alpha22 = -0.05\n# t = 1.0\nx,y,exx,eyy,exy\n0,0,0.01,0.02,0\n1,0,0.01,0.02,0\n0,1,0.01,0.02,0\n"
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (GOOD.replace("# skinid-measurement v1", "x"), ":1: first line"),
+        (GOOD.replace("# t = 1.0\n", ""), "'# t = ...' is missing"),
+        (GOOD.replace("x,y,exx,eyy,exy", "x,y,exx,eyy"), "column(s) exy missing"),
+        (GOOD.replace("1,0,0.01", "1,0,nan"), ":7: NaN"),
+        (GOOD.replace("0,1,0.01", "0,40,0.01"), ":8: point (0.0, 40.0) mm lies outside"),
+        (GOOD.replace("# t = 1.0", "# t = 1.0\n# strain = cauchy"), "unknown strain measure 'cauchy'"),
+        (GOOD.replace("1,0,0.01,0.02,0", "1,0,0.01,0.02"), ":7: expected 5 values"),
+        (GOOD.replace("1,0,0.01", "1,0,abc"), ":7: a value is not a number"),
+    ],
+)
+def test_bad_measurement_files_are_refused(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(MeasurementError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        read_measurement(path, half_length=25)
+
+
+def test_cli_infer_from_measurement(emulator, data, tmp_path, small_emulator):
+    obs = from_dataset(data, int(np.flatnonzero(data.split)[1]), designs=[2])[0]
+    path = write_measurement(tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t)
+    res = skinid("infer", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "post",
+                 "--chains", "2", "--warmup", "100", "--draws", "100", "--quiet")
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((tmp_path / "post" / "summary.json").read_text())
+    assert set(summary["parameters"]) >= {"mu", "k1", "k2", "kappa", "theta"}
+    assert "R-hat" in res.stdout
+    bad = tmp_path / "bad.csv"
+    bad.write_text(GOOD.replace("exy", "e_xy"))
+    res = skinid("infer", "--emulator", small_emulator, "--measurement", bad, "--out", tmp_path / "p2")
+    assert res.returncode == 2 and "column(s) exy missing" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
