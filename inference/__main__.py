@@ -1,4 +1,4 @@
-"""Command line of inference: ``skinid infer`` and ``skinid study test-set|setups``."""
+"""Command line of inference: ``skinid infer``, ``skinid noise``, ``skinid study test-set|setups``."""
 
 from __future__ import annotations
 
@@ -37,6 +37,14 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                             help="unknown noise per component, or the measurement's sd columns")
         parser.add_argument("--out", type=Path, required=True, help="output directory")
         _add_sampler(parser)
+        return parser
+    if prog.endswith("noise"):
+        parser.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
+        parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
+        parser.add_argument("--level", type=float, required=True,
+                            help="amplitude as a fraction of the max |strain| of the training data")
+        parser.add_argument("--seed", type=int, default=0)
+        parser.add_argument("--out", type=Path, required=True, help="noisy dataset (.h5)")
         return parser
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
@@ -124,16 +132,31 @@ def cmd_study(args) -> None:
     print(f"wrote {args.out}/setups.png")
 
 
+def cmd_noise(args) -> None:
+    from inference.noise import add_noise
+    from skinfem.io import StrainDataset
+
+    if args.out.exists():
+        raise ValueError(f"'{args.out}' exists; choose a new --out")
+    data = StrainDataset.open(args.data)
+    add_noise(data, args.out, args.length, args.level, args.seed)
+    print(f"added noise (length {args.length} mm, level {args.level:.0%}, seed {args.seed}) to "
+          f"{int((data.status == 1).sum())} simulations\nwrote {args.out}")
+
+
+COMMANDS = {"infer": cmd_infer, "study": cmd_study, "noise": cmd_noise}
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    command = argv[0] if argv and argv[0] in ("infer", "study") else "infer"
-    if argv and argv[0] in ("infer", "study"):
+    command = argv[0] if argv and argv[0] in COMMANDS else "infer"
+    if argv and argv[0] in COMMANDS:
         argv = argv[1:]
     args = build_parser(f"skinid {command}").parse_args(argv)
     from inference.observations import MeasurementError
 
     try:
-        (cmd_infer if command == "infer" else cmd_study)(args)
+        COMMANDS[command](args)
     except (MeasurementError, ValueError, FileNotFoundError) as exc:
         print(f"skinid {command}: error: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,106 @@
+"""Inference benchmark: wall time and ESS per second of a single-observation posterior.
+
+    python benchmarks/inference.py --emulator EMU --data DATA.h5 [--paper-iterations 2000]
+
+Runs, on the first test material and the "mixed" design (0.05, -0.05), last frame:
+- skinid: 4 chains x 1,000 draws after 500 warm-up, chains in 2 processes, one torch thread
+  each, NUTS on the torch potential with autograd gradients, started at the posterior mode;
+  with the GP variance exact at every step and fixed at the mode;
+- the paper's configuration: one chain, the likelihood evaluated through scikit-learn
+  (no gradient reaches the sampler), ``--paper-iterations`` warm-up + the same number of
+  draws (the paper used 10,000 + 10,000; the time of that is extrapolated linearly).
+Results are merged into benchmarks/results/inference.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "inference.json"
+
+
+def min_ess(summary: dict) -> float:
+    return min(min(e["ess_bulk"], e["ess_tail"]) for n, e in summary["parameters"].items())
+
+
+def make_paper_posterior(emulator, observed):
+    """The same density, its likelihood computed by scikit-learn outside autograd."""
+    from inference.model import SkinPosterior
+
+    class SklearnLikelihood(SkinPosterior):
+        def log_likelihood(self, params, sigma):
+            x = np.concatenate([np.repeat(params.detach().numpy()[None], len(self.design_inputs), 0),
+                                self.design_inputs.numpy()], 1)
+            unit = self.emulator.scale(x)
+            preds = [gp.predict(unit, return_std=True) for gp in self.emulator.sklearn_gps]
+            mean = np.stack([p[0] for p in preds], 1)
+            var = np.stack([p[1] ** 2 for p in preds], 1)
+            s = sigma.detach().numpy()[self.component_of_weight.numpy()] ** 2
+            total = var + s
+            r = self.weights.numpy() - mean
+            return torch.tensor(-0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total)), dtype=torch.float64)
+
+    return SklearnLikelihood(emulator, observed)
+
+
+def main() -> None:
+    from inference.model import ObservedWeights, SkinPosterior
+    from inference.observations import from_dataset
+    from inference.sampling import sample_posterior
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--emulator", type=Path, required=True)
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--paper-iterations", type=int, default=2000)
+    parser.add_argument("--skip-paper", action="store_true")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
+    material = int(np.flatnonzero(data.split)[0])
+    mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
+    observed = ObservedWeights.project(emulator, from_dataset(data, material, [mixed], [-1]))
+    results = {"emulator": str(args.emulator), "n_gp_rows": emulator.meta["n_gp_rows"],
+               "n_gps": int(sum(emulator.n_weights.values())), "material": material}
+    for gp_variance in ("exact", "mode"):
+        post = SkinPosterior(emulator, observed, gp_variance=gp_variance)
+        s = sample_posterior(post, chains=4, warmup=500, draws=1000, seed=0, n_jobs=2, progress=False)
+        summary = s.summary()
+        results[f"skinid_gp_variance_{gp_variance}"] = {
+            "chains": 4, "warmup": 500, "draws": 1000, "seconds": s.seconds,
+            "max_r_hat": max(e["r_hat"] for e in summary["parameters"].values()),
+            "min_ess": min_ess(summary), "ess_per_second": min_ess(summary) / s.seconds,
+            "divergences": summary["divergences"], "gp_variance_over_posterior": s.gp_variance_spread,
+            "medians": {n: e["median"] for n, e in summary["parameters"].items()},
+        }
+        print(gp_variance, json.dumps(results[f"skinid_gp_variance_{gp_variance}"]), flush=True)
+    if not args.skip_paper:
+        n = args.paper_iterations
+        post = make_paper_posterior(emulator, observed)
+        s = sample_posterior(post, chains=1, warmup=n, draws=n, seed=0, n_jobs=1, progress=False)
+        summary = s.summary()
+        results["paper_configuration"] = {
+            "chains": 1, "warmup": n, "draws": n, "seconds": s.seconds,
+            "seconds_extrapolated_to_10000_plus_10000": s.seconds * 10000 / n,
+            "min_ess": min_ess(summary), "ess_per_second": min_ess(summary) / s.seconds,
+            "medians": {k: e["median"] for k, e in summary["parameters"].items()},
+        }
+        print("paper", json.dumps(results["paper_configuration"]), flush=True)
+        ref = results["skinid_gp_variance_exact"]
+        results["ess_per_second_ratio_skinid_exact_over_paper"] = ref["ess_per_second"] / results["paper_configuration"]["ess_per_second"]
+    all_results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    all_results[Path(args.emulator).name] = results
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(all_results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

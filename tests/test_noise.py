@@ -1,0 +1,55 @@
+"""Correlated noise: covariance against the RBF kernel, amplitude, seeding, the noisy dataset."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from inference.noise import correlation_factor, noise_amplitude, noise_fields
+from skinfem.io import StrainDataset
+from tests.cli_helpers import skinid
+
+
+def test_noise_has_the_rbf_covariance():
+    xy = np.array([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [0.0, 2.0], [3.0, 3.0]])
+    length = 1.0
+    factor = correlation_factor(xy, length)
+    amplitude = np.array([0.01, 0.02, 0.005])
+    samples = noise_fields(factor, amplitude, (40000,), np.random.default_rng(0))  # (40000, 5, 3)
+    for c in range(3):
+        cov = np.cov(samples[..., c].T)
+        d2 = ((xy[:, None] - xy[None]) ** 2).sum(-1)
+        expected = amplitude[c] ** 2 * np.exp(-d2 / (2 * length**2))
+        np.testing.assert_allclose(cov, expected, atol=0.03 * amplitude[c] ** 2)
+    # components are independent
+    corr = np.corrcoef(samples[:, 0, 0], samples[:, 0, 1])[0, 1]
+    assert abs(corr) < 0.03
+
+
+def test_short_length_scales_give_white_noise_and_bad_lengths_are_refused():
+    xy = np.random.default_rng(1).uniform(-10, 10, size=(50, 2))
+    factor = correlation_factor(xy, 1e-3)
+    np.testing.assert_allclose(factor @ factor.T, np.eye(50), atol=1e-6)
+    with pytest.raises(ValueError, match="length scale"):
+        correlation_factor(xy, 0.0)
+
+
+def test_noisy_dataset(small_dataset, tmp_path):
+    out = tmp_path / "noisy.h5"
+    res = skinid("noise", "--data", small_dataset, "--length", "1.0", "--level", "0.05", "--seed", "3", "--out", out)
+    assert res.returncode == 0, res.stderr
+    clean, noisy = StrainDataset.open(small_dataset), StrainDataset.open(out)
+    assert np.array_equal(clean.split, noisy.split) and np.array_equal(clean.params, noisy.params)
+    diff = noisy.strain() - clean.strain()
+    amplitude = noise_amplitude(clean, 0.05)
+    assert np.all(amplitude > 0)
+    np.testing.assert_allclose(diff.reshape(-1, 3).std(0), amplitude, rtol=0.1)
+    with h5py.File(out) as f:
+        meta = json.loads(f.attrs["noise"])
+    assert meta["length_mm"] == 1.0 and meta["seed"] == 3
+    again = tmp_path / "again.h5"
+    assert skinid("noise", "--data", small_dataset, "--length", "1.0", "--level", "0.05", "--seed", "3", "--out", again).returncode == 0
+    assert np.array_equal(StrainDataset.open(again).strain(), noisy.strain())
+    res = skinid("noise", "--data", small_dataset, "--length", "-1", "--level", "0.05", "--out", tmp_path / "bad.h5")
+    assert res.returncode == 2 and "length scale must be > 0" in res.stderr
