@@ -63,6 +63,16 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     p.add_argument("--out", type=Path, required=True)
     _add_sampler(p)
+    p = sub.add_parser("noise", help="the paper's 9 noise cases: PCA, GP R², test-set posteriors")
+    p.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
+    p.add_argument("--design", type=int, required=True, help="design index observed (last frame)")
+    p.add_argument("--lengths", type=float, nargs="+", default=[0.1, 1.0, 5.0], help="[mm]")
+    p.add_argument("--levels", type=float, nargs="+", default=[0.01, 0.05, 0.10])
+    p.add_argument("--materials", help="subset of test materials (default: the test split)")
+    p.add_argument("--gp-fraction", type=float, default=0.1)
+    p.add_argument("--restarts", type=int, default=2)
+    p.add_argument("--out", type=Path, required=True)
+    _add_sampler(p)
     return parser
 
 
@@ -107,8 +117,16 @@ def cmd_study(args) -> None:
     from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
 
-    emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     materials = _ints(args.materials)
+    if args.study == "noise":
+        from inference.studies import noise_study
+
+        data = StrainDataset.open(args.data)
+        noise_study(data, args.out, args.design, settings_of(args), tuple(args.lengths), tuple(args.levels),
+                    materials, {"gp_fraction": args.gp_fraction, "restarts": args.restarts})
+        print(f"wrote {args.out}/README.md")
+        return
+    emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     if args.study == "test-set":
         res = test_set_study(emulator, data, _ints(args.designs), _ints(args.frames), settings_of(args),
                              args.out, materials)

@@ -122,6 +122,7 @@ class SkinPosterior:
         )
         self.noise_var = None if observed.noise_var is None else torch.as_tensor(observed.noise_var)
         self.fixed_gp_var: torch.Tensor | None = None
+        self._density = None
 
     # -- parametrisation -------------------------------------------------------------------
     @property
@@ -174,8 +175,22 @@ class SkinPosterior:
         return self.log_likelihood(params, sigma) + log_prior + log_jac
 
     def potential(self, sites: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Pyro's ``potential_fn``: minus the log density of ``sites["u"]``."""
-        return -self.log_density(sites["u"])
+        """Pyro's ``potential_fn``: minus the log density of ``sites["u"]``.
+
+        With ``gp_variance="mode"`` it is evaluated by the closed-form
+        :class:`~inference.density.FusedLogDensity` (same value and gradient as
+        :meth:`log_density`, ~3x less overhead).
+        """
+        from inference.density import FusedLogDensity, fused_potential
+
+        if self.gp_variance == "exact" or self.fixed_gp_var is None:
+            return -self.log_density(sites["u"])
+        if self._density is None:
+            self._density = FusedLogDensity(self)
+        return fused_potential(sites["u"], self._density)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_density": None}  # rebuilt where it is used
 
     # -- helpers ---------------------------------------------------------------------------
     def initial_sigma(self) -> np.ndarray:

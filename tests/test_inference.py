@@ -51,6 +51,28 @@ def test_potential_equals_pyro_models_potential(emulator, data, gp_variance):
         assert float(post.potential({"u": u})) == pytest.approx(expected, rel=1e-10, abs=1e-8)
 
 
+def test_closed_form_density_equals_autograd(emulator, data):
+    from inference.density import FusedLogDensity
+
+    obs = from_dataset(data, 1, designs=[0, 3], frames=[-3, -1])
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance="mode")
+    post.fix_gp_variance(data.params[2])
+    fused = FusedLogDensity(post)
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        u = rng.normal(size=post.dim)
+        ut = torch.tensor(u, requires_grad=True)
+        value = post.log_density(ut)
+        (grad,) = torch.autograd.grad(value, ut)
+        v2, g2 = fused(u)
+        assert v2 == pytest.approx(float(value), rel=1e-10, abs=1e-7)
+        np.testing.assert_allclose(g2, grad.numpy(), rtol=1e-8, atol=1e-8 * np.abs(grad.numpy()).max())
+    # and the potential Pyro's NUTS calls uses it, with the gradient flowing back
+    ut = torch.tensor(u, requires_grad=True)
+    (g3,) = torch.autograd.grad(post.potential({"u": ut}), ut)
+    np.testing.assert_allclose(g3.numpy(), -g2)
+
+
 class LinearEmulator:
     """Stand-in emulator with linear weights w = A x_unit + b and a constant variance."""
 
