@@ -138,7 +138,10 @@ def write_simulation(
     A failed simulation (``status = -1``) stores NaN strains and its message. Non-finite
     strains of a converged simulation are refused (``ValueError``).
     """
-    with h5py.File(path, "r+") as f:
+    # No HDF5 file lock: the sweep's rank 0 is the only writer, and a reader (``skinid info``
+    # while the sweep runs) must not make the write fail. Readers see complete entries only,
+    # because the status byte is written last.
+    with h5py.File(path, "r+", locking=False) as f:
         block = f["strain"]
         if status == STATUS_OK:
             if strain is None or not np.all(np.isfinite(strain)):

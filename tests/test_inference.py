@@ -128,7 +128,7 @@ def test_held_out_material_is_identified(emulator, data, tmp_path):
     material = int(np.flatnonzero(data.split)[0])
     mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
     obs = from_dataset(data, material, designs=[mixed], frames=[-1])
-    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs))
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance="mode")
     samples = sample_posterior(post, chains=4, warmup=300, draws=400, seed=0, n_jobs=2, progress=False)
     summary = write_outputs(samples, tmp_path)
     for name in ("mu", "theta"):

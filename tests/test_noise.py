@@ -61,7 +61,7 @@ def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
     from inference.studies import SamplerSettings, noise_study
 
     data = StrainDataset.open(small_dataset)
-    settings = SamplerSettings(chains=2, warmup=100, draws=100, n_jobs=2, progress=False)
+    settings = SamplerSettings(chains=2, warmup=100, draws=100, n_jobs=2, gp_variance="mode", progress=False)
     results = noise_study(data, tmp_path, design=2, settings=settings, lengths=(1.0,), levels=(0.05,),
                           materials=[int(np.flatnonzero(data.split)[0])],
                           fit_options={"gp_fraction": 0.3, "restarts": 0})
