@@ -18,14 +18,12 @@ test-fast: setup
 	$(PY) -m pytest -q -m "not slow and not mpi" tests
 
 demo: setup
-	$(VENV)/bin/skinid mesh --config small
-	$(VENV)/bin/skinid simulate --config small --mu 0.0012 --k1 0.017 --k2 12 --kappa 0.28 \
-		--theta 30 --alpha11 0.05 --alpha22 -0.05 --out out/demo/simulation.h5 \
-		--fields out/demo/fields.xdmf
+	$(PY) scripts/demo.py --out out/demo
 
 benchmarks: setup
 	$(PY) benchmarks/forward.py timing
 	$(PY) benchmarks/forward.py convergence
+	$(PY) benchmarks/sweep.py --config small
 
 clean:
 	rm -rf out/ meshes/*.msh .pytest_cache

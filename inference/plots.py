@@ -96,3 +96,43 @@ def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def strain_maps(xy: np.ndarray, fields: list[np.ndarray], titles: list[str], path: Path | str,
+                membrane_half: float = 10.0, theta_deg: float | None = None, window: float = 20.0,
+                symmetric: bool = True, suptitle: str = "") -> Path:
+    """Cell-wise strain maps (one panel per field), membrane outline dashed, fiber direction.
+
+    Args:
+        xy: (n_cells, 2) centroids [mm]; fields: list of (n_cells,) strain values [-].
+        window: half-width of the shown region [mm].
+    """
+    plt = _pyplot()
+    from matplotlib.tri import Triangulation
+
+    tri = Triangulation(xy[:, 0], xy[:, 1])
+    fig, axes = plt.subplots(1, len(fields), figsize=(4.3 * len(fields), 3.9), squeeze=False)
+    for ax, values, title in zip(axes[0], fields, titles):
+        vmax = np.nanmax(np.abs(values)) if symmetric else None
+        im = ax.tripcolor(tri, values, shading="gouraud", cmap="RdBu_r" if symmetric else "viridis",
+                          vmin=-vmax if symmetric else None, vmax=vmax)
+        h = membrane_half
+        ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)
+        if theta_deg is not None:
+            t = np.radians(theta_deg)
+            ax.annotate("", xy=(0.8 * window * np.cos(t) - 0.9 * window, 0.8 * window * np.sin(t) - 0.9 * window),
+                        xytext=(-0.9 * window, -0.9 * window), arrowprops=dict(arrowstyle="->", color="k", lw=1.5))
+            ax.text(-0.88 * window, -0.75 * window, "fibers", fontsize=8)
+        ax.set_xlim(-window, window)
+        ax.set_ylim(-window, window)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.set_title(title, fontsize=10)
+        fig.colorbar(im, ax=ax, label="log strain [-]", shrink=0.85)
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
