@@ -112,8 +112,10 @@ class GPBank(torch.nn.Module):
     def cross_covariance(self, x: torch.Tensor) -> torch.Tensor:
         """k(x, x_train) without the white noise: (G, B, n) for x (B, d)."""
         a = x[None] / self.length_scale[:, None]  # (G, B, d)
-        b = self._scaled_train
-        sq = (a**2).sum(-1)[..., None] + self._scaled_train_sq[:, None] - 2 * a @ b.transpose(1, 2)
+        base = (a**2).sum(-1, keepdim=True) + self._scaled_train_sq[:, None]  # (G, B, n)
+        sq = torch.baddbmm(base, a, self._scaled_train.transpose(1, 2), alpha=-2.0)
+        if not sq.requires_grad:  # prediction only: in place, no temporaries
+            return torch.exp_(sq.clamp_min_(0.0).mul_(-0.5)).mul_(self.constant[:, None, None])
         return self.constant[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
 
     def forward(self, x: torch.Tensor, return_var: bool = True):

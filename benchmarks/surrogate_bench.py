@@ -1,6 +1,6 @@
 """Surrogate benchmark: PC counts, held-out accuracy, fit time and batched prediction time.
 
-    python benchmarks/surrogate.py --data out/study/study.h5 [--fractions 0.1 0.2]
+    python benchmarks/surrogate_bench.py --data out/study/study.h5 [--fractions 0.1 0.2]
 
 For every GP training fraction: fit on the training materials, validate on the test
 materials, time one batched prediction of 1,000 parameter sets (mean fields; and mean +
@@ -21,7 +21,8 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "surrogate.json"
 
 
-def time_prediction(emulator, n: int = 1000, repeats: int = 5) -> dict:
+def time_prediction(emulator, n: int = 1000, repeats: int = 5, threads: int = 2) -> dict:
+    torch.set_num_threads(threads)
     rng = np.random.default_rng(0)
     params = rng.uniform(emulator.lower[:5], emulator.upper[:5], size=(n, 5))
     emulator.predict_fields(params, [0.05, -0.05], 1.0)  # warm-up
@@ -47,11 +48,22 @@ def main() -> None:
     from surrogate.validation import validate
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--data", type=Path)
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.1])
     parser.add_argument("--restarts", type=int, default=2)
     parser.add_argument("--save", type=Path, help="save the emulator of the first fraction here")
+    parser.add_argument("--predict-only", type=Path, help="only time predictions of this emulator directory")
     args = parser.parse_args()
+    if args.predict_only:
+        from surrogate.emulator import Emulator
+
+        emulator = Emulator.load(args.predict_only)
+        timings = {t: time_prediction(emulator, threads=t) for t in (1, 2)}
+        print(json.dumps(timings, indent=2))
+        results = json.loads(RESULTS.read_text())
+        results[f"prediction_{args.predict_only.name}"] = timings
+        RESULTS.write_text(json.dumps(results, indent=2) + "\n")
+        return
     data = StrainDataset.open(args.data)
     rows = []
     for k, fraction in enumerate(args.fractions):

@@ -1,6 +1,6 @@
 """Inference benchmark: wall time and ESS per second of a single-observation posterior.
 
-    python benchmarks/inference.py --emulator EMU --data DATA.h5 [--paper-iterations 2000]
+    python benchmarks/inference_bench.py --emulator EMU --data DATA.h5 [--paper-iterations 2000]
 
 Runs, on the first test material and the "mixed" design (0.05, -0.05), last frame:
 - skinid: 4 chains x 1,000 draws after 500 warm-up, chains in 2 processes, one torch thread
