@@ -100,7 +100,9 @@ def main() -> None:
         for v in args.variants:
             results[f"ess_per_second_ratio_{v}_over_paper"] = results[f"skinid_gp_variance_{v}"]["ess_per_second"] / paper_rate
     all_results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    all_results[Path(args.emulator).name] = results
+    from skinfem.config import config_from_toml
+
+    all_results[config_from_toml(emulator.meta["dataset_config"]).name] = results
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(all_results, indent=2) + "\n")
 
