@@ -18,7 +18,7 @@ ROUTES: dict[str, tuple[str, str]] = {
     "surrogate": ("surrogate.__main__", "fit | validate the PCA + GP emulator"),
     "infer": ("inference.__main__", "NUTS posterior of the skin parameters"),
     "noise": ("inference.__main__", "add spatially correlated noise to a dataset"),
-    "study": ("inference.__main__", "test-set | setups: many posteriors, accuracy and coverage"),
+    "study": ("inference.__main__", "test-set | setups | noise: many posteriors, accuracy and coverage"),
 }
 
 
