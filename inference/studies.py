@@ -141,8 +141,9 @@ def noise_study(
     fit_options: dict | None = None,
 ) -> dict:
     """The paper's noise study on ``data`` (clean): per case a noisy copy, an emulator fitted on
-    its training materials only, validation on its test materials, and test-set posteriors for
-    one design (last frame). Resumable: finished files are reused. Writes ``<out>/README.md``.
+    its training materials only (with the clean case's number of PCs), validation on its test
+    materials, and test-set posteriors for one design (last frame). Resumable: finished files
+    are reused. Writes ``<out>/README.md``.
     """
     from inference.noise import add_noise
     from surrogate.emulator import fit_emulator
@@ -167,6 +168,10 @@ def noise_study(
         else:
             emulator = fit_emulator(case_data, **fit_options)
             emulator.save(emu_dir)
+        if noise is None:
+            # noisy cases keep the clean number of PCs (as the paper does): a variance threshold
+            # on noisy fields would retain hundreds of noise components
+            fit_options = {**fit_options, "n_components": max(emulator.n_weights.values())}
         report, _ = validate(emulator, case_data)
         study = test_set_study(emulator, case_data, [design], [-1], settings, folder / "posteriors",
                                materials, label=f"{name}: design {design}")
@@ -252,7 +257,8 @@ def write_noise_report(results: dict, out: Path) -> Path:
     lines = ["# Noise study", "",
              "Each case adds zero-mean GP noise (RBF kernel, length scale ℓ, amplitude = level × max |strain| "
              "of the training data) to every frame, refits PCA and GPs on the training materials only and "
-             "samples the posterior of every test material from the last frame of one design.", "",
+             "samples the posterior of every test material from the last frame of one design. Noisy cases "
+             "keep the clean case's number of PCs M, so the explained variance at M shows what noise takes.", "",
              "![explained variance](explained_variance.png)", "", "## GP R² per PC on held-out materials", ""]
     for c in next(iter(results.values()))["r2_per_pc"]:
         width = max(len(r["r2_per_pc"][c]) for r in results.values())
