@@ -25,13 +25,13 @@ class FusedLogDensity:
         emu = posterior.emulator
         bank = emu.gps
         self.x_train = bank.x_train.cpu().numpy()
-        self.inv_l2 = 1.0 / bank.length_scale.cpu().numpy() ** 2  # (G, d)
+        self.length_scale = bank.length_scale.cpu().numpy()  # (G, d)
+        self.inv_l2 = 1.0 / self.length_scale**2
         self.constant = bank.constant.cpu().numpy()
-        self.noise = bank.noise.cpu().numpy()
         self.alpha = bank.alpha.cpu().numpy()
         self.y_mean, self.y_std = bank.y_mean.cpu().numpy(), bank.y_std.cpu().numpy()
-        scaled = self.x_train[None] * np.sqrt(self.inv_l2)[:, None]  # (G, n, d)
-        self.scaled_train, self.scaled_train_sq = scaled, (scaled**2).sum(-1)
+        self.scaled_train = bank.scaled_train.cpu().numpy()  # (G, n, d) x_train / l
+        self.scaled_train_sq = bank.scaled_train_sq.cpu().numpy()  # (G, n)
         if posterior.gp_variance != "mode":
             raise ValueError("the closed form covers gp_variance='mode'; 'exact' uses autograd")
         self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
@@ -47,7 +47,7 @@ class FusedLogDensity:
 
     def gp_mean(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """GP mean (n_obs, G) and its gradient (n_obs, G, 7) at unit inputs x (n_obs, 7)."""
-        a = x[None] * np.sqrt(self.inv_l2)[:, None]  # (G, n_obs, d)
+        a = x[None] / self.length_scale[:, None]  # (G, n_obs, d), as in GPBank
         sq = (a**2).sum(-1)[..., None] + self.scaled_train_sq[:, None] - 2 * a @ self.scaled_train.transpose(0, 2, 1)
         k = self.constant[:, None, None] * np.exp(-0.5 * np.maximum(sq, 0.0))  # (G, n_obs, n)
         beta = k * self.alpha[:, None]

@@ -151,13 +151,21 @@ class SkinPosterior:
             return self.emulator.predict_weights(x, return_var=True)
         return self.emulator.predict_weights(x, return_var=False), None
 
-    def log_likelihood(self, params: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-        exact = self.gp_variance == "exact" or self.fixed_gp_var is None
-        mean, var = self.predict(params, return_var=exact)
-        if not exact:
+    @property
+    def variance_is_fixed(self) -> bool:
+        """True once the GP variance is held at the mode (``gp_variance="mode"``)."""
+        return self.gp_variance == "mode" and self.fixed_gp_var is not None
+
+    def weight_moments(self, params: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and total variance (GP + observation noise) of the observed weights (n_obs, G)."""
+        mean, var = self.predict(params, return_var=not self.variance_is_fixed)
+        if self.variance_is_fixed:
             var = self.fixed_gp_var
         noise = self.noise_var if self.noise == "known" else sigma[self.component_of_weight] ** 2
-        total = var + noise
+        return mean, var + noise
+
+    def log_likelihood(self, params: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        mean, total = self.weight_moments(params, sigma)
         resid = self.weights - mean
         return -0.5 * torch.sum(resid**2 / total + torch.log(2 * math.pi * total))
 
@@ -183,7 +191,7 @@ class SkinPosterior:
         """
         from inference.density import FusedLogDensity, fused_potential
 
-        if self.gp_variance == "exact" or self.fixed_gp_var is None:
+        if not self.variance_is_fixed:
             return -self.log_density(sites["u"])
         if self._density is None:
             self._density = FusedLogDensity(self)
@@ -228,8 +236,5 @@ def pyro_model(posterior: SkinPosterior) -> None:
         [pyro.sample(name, dist.HalfCauchy(torch.tensor(posterior.noise_scale, dtype=torch.float64)))
          for name in posterior.names[5:]]
     ) if posterior.noise == "halfcauchy" else torch.zeros(0, dtype=torch.float64)
-    exact = posterior.gp_variance == "exact" or posterior.fixed_gp_var is None
-    mean, var = posterior.predict(params, return_var=exact)
-    var = var if exact else posterior.fixed_gp_var
-    noise = posterior.noise_var if posterior.noise == "known" else sigma[posterior.component_of_weight] ** 2
-    pyro.sample("weights", dist.Normal(mean, torch.sqrt(var + noise)).to_event(2), obs=posterior.weights)
+    mean, total = posterior.weight_moments(params, sigma)
+    pyro.sample("weights", dist.Normal(mean, torch.sqrt(total)).to_event(2), obs=posterior.weights)

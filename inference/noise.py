@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_atomically, write_simulation
+from skinfem.io import STATUS_OK, StrainDataset, create_dataset_like, write_atomically, write_simulation
 
 
 def correlation_factor(xy: np.ndarray, length: float, jitter: float = 1e-8) -> np.ndarray:
@@ -61,8 +61,7 @@ def add_noise(data: StrainDataset, out: Path | str, length: float, level: float,
     def write(tmp: Path) -> None:
         import h5py
 
-        create_dataset(tmp, data.config, data.params, data.designs, data.t, data.xy, data.volume,
-                       data.split, data.mesh_sha256, bounds=np.stack([data.lower, data.upper], 1))
+        create_dataset_like(tmp, data)
         with h5py.File(tmp, "a") as f:
             f.attrs["noise"] = json.dumps({"length_mm": length, "level": level, "seed": seed,
                                            "amplitude": amplitude.tolist(), "source": str(data.path)})

@@ -113,6 +113,22 @@ def create_dataset(
         f.create_dataset("split", data=np.asarray(split, dtype=np.int8))
 
 
+def create_dataset_like(path: Path | str, data: "StrainDataset") -> None:
+    """Create an empty dataset with the metadata (config, design, cells, split, mesh) of ``data``."""
+    create_dataset(
+        path,
+        data.config,
+        data.params,
+        data.designs,
+        data.t,
+        data.xy,
+        data.volume,
+        data.split,
+        data.mesh_sha256,
+        bounds=np.stack([data.lower, data.upper], 1),
+    )
+
+
 def _early_allocation():
     dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
     dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)

@@ -31,6 +31,7 @@ from skinfem.io import (
     STATUS_OK,
     StrainDataset,
     create_dataset,
+    create_dataset_like,
     write_atomically,
     write_simulation,
 )
@@ -277,12 +278,11 @@ def run_sweep(
         bar.close()
     if comm.rank != 0:
         return None
-    final = StrainDataset.open(out).status
     return SweepReport(
         path=out,
         n_run=len(results),
         n_failed=sum(r[2] == STATUS_FAILED for r in results),
-        n_total=final.size,
+        n_total=status.size,
         n_done_before=int(np.count_nonzero(status)),
         wall_seconds=time.perf_counter() - start,
         sim_seconds=[r[3] for r in results if r[2] == STATUS_OK],
@@ -328,18 +328,7 @@ def merge_datasets(paths: list[Path | str], out: Path | str) -> StrainDataset:
             owner[i, j] = k
 
     def write(tmp: Path) -> None:
-        create_dataset(
-            tmp,
-            first.config,
-            first.params,
-            first.designs,
-            first.t,
-            first.xy,
-            first.volume,
-            first.split,
-            first.mesh_sha256,
-            bounds=np.stack([first.lower, first.upper], 1),
-        )
+        create_dataset_like(tmp, first)
         for i, j in zip(*np.nonzero(owner >= 0)):
             shard = shards[owner[i, j]]
             write_simulation(

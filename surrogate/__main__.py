@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         from skinfem.io import StrainDataset
-        from surrogate.emulator import Emulator, fit_emulator
+        from surrogate.emulator import fit_emulator
         from surrogate.validation import plot_explained_variance, validate_directory
 
         if args.action == "fit":
@@ -71,7 +71,6 @@ def main(argv: list[str] | None = None) -> int:
             if not args.no_validate:
                 print_report(validate_directory(args.out, args.data), args.out)
         else:
-            Emulator.load(args.emulator)
             print_report(validate_directory(args.emulator, args.data), args.emulator)
     except (ValueError, FileNotFoundError) as exc:
         print(f"skinid surrogate {args.action}: error: {exc}", file=sys.stderr)

@@ -79,8 +79,8 @@ class GPBank(torch.nn.Module):
             self.register_buffer(name, torch.as_tensor(np.asarray(arrays[name]), dtype=torch.float64))
         # training inputs in length-scale units and their squared norms (G, n, d), (G, n)
         scaled = self.x_train[None] / self.length_scale[:, None]
-        self.register_buffer("_scaled_train", scaled, persistent=False)
-        self.register_buffer("_scaled_train_sq", (scaled**2).sum(-1), persistent=False)
+        self.register_buffer("scaled_train", scaled, persistent=False)
+        self.register_buffer("scaled_train_sq", (scaled**2).sum(-1), persistent=False)
 
     @classmethod
     def from_sklearn(cls, gps: list[GaussianProcessRegressor]) -> "GPBank":
@@ -112,8 +112,8 @@ class GPBank(torch.nn.Module):
     def cross_covariance(self, x: torch.Tensor) -> torch.Tensor:
         """k(x, x_train) without the white noise: (G, B, n) for x (B, d)."""
         a = x[None] / self.length_scale[:, None]  # (G, B, d)
-        base = (a**2).sum(-1, keepdim=True) + self._scaled_train_sq[:, None]  # (G, B, n)
-        sq = torch.baddbmm(base, a, self._scaled_train.transpose(1, 2), alpha=-2.0)
+        base = (a**2).sum(-1, keepdim=True) + self.scaled_train_sq[:, None]  # (G, B, n)
+        sq = torch.baddbmm(base, a, self.scaled_train.transpose(1, 2), alpha=-2.0)
         if not sq.requires_grad:  # prediction only: in place, no temporaries
             return torch.exp_(sq.clamp_min_(0.0).mul_(-0.5)).mul_(self.constant[:, None, None])
         return self.constant[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
