@@ -73,6 +73,8 @@ def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
 def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title: str) -> Path:
     """True value vs posterior median with 95 % intervals, one panel per parameter (Fig. 9)."""
     plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
+
     names = list(LABELS)
     fig, axes = plt.subplots(1, 5, figsize=(17, 3.6))
     for k, (ax, n) in enumerate(zip(axes, names)):
@@ -83,14 +85,17 @@ def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title:
         covered = (lo <= true) & (true <= hi)
         ax.errorbar(true, med, yerr=[med - lo, hi - med], fmt="o", ms=4, capsize=2,
                     color="C0", ecolor="C0", alpha=0.8)
-        ax.plot(true[~covered], med[~covered], "o", color="r", ms=5, label="truth not covered")
+        ax.plot(true[~covered], med[~covered], "o", mfc="none", mec="r", mew=1.5, ms=9,
+                label="truth outside the 95 % interval")
         ax.plot(bounds[k], bounds[k], "k--", lw=0.8)
         ax.set_xlim(bounds[k])
         ax.set_ylim(bounds[k])
         ax.set_xlabel(f"true {LABELS[n]}")
         ax.set_ylabel(f"posterior {LABELS[n]}")
         ax.set_title(f"coverage {covered.mean():.0%}", fontsize=10)
+        ax.xaxis.set_major_locator(MaxNLocator(4))
         ax.tick_params(labelsize=8)
+    axes[0].legend(fontsize=7, loc="upper left")
     fig.suptitle(title, fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

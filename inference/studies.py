@@ -197,6 +197,7 @@ def explained_variance_plot(results: dict, path: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     comps = list(next(iter(results.values()))["explained_variance"])
     fig, axes = plt.subplots(1, len(comps), figsize=(5.5 * len(comps), 4), squeeze=False)
@@ -207,6 +208,7 @@ def explained_variance_plot(results: dict, path: Path) -> Path:
             ax.plot(np.arange(1, len(ev) + 1), ev, style, marker="o", ms=3, label=name)
         ax.axhline(0.99, color="0.5", ls="--", lw=0.8)
         ax.set_xlabel("number of principal components M")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(f"cumulative explained variance of E_{c} [-]")
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)

@@ -105,6 +105,7 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for c, pca in emulator.pcas.items():
@@ -112,6 +113,7 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
         ax.plot(np.arange(1, len(ratio) + 1), ratio, "o-", ms=3, label=f"E_{c} (M = {pca.n_components_})")
     ax.axhline(0.99, color="k", lw=0.8, ls="--", label="99 %")
     ax.set_xlabel("number of principal components M")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("cumulative explained variance [-]")
     ax.set_ylim(top=1.0)
     ax.legend(fontsize=8)
