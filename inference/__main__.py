@@ -1,4 +1,4 @@
-"""Command line of inference: ``skinid infer``, ``skinid noise``, ``skinid study test-set|setups``."""
+"""Command line of inference: ``skinid infer``, ``noise``, ``study test-set|setups|noise``, ``check``."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+import numpy as np
 
 
 def _add_sampler(p: argparse.ArgumentParser) -> None:
@@ -45,6 +47,22 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                             help="amplitude as a fraction of the max |strain| of the training data")
         parser.add_argument("--seed", type=int, default=0)
         parser.add_argument("--out", type=Path, required=True, help="noisy dataset (.h5)")
+        return parser
+    if prog.endswith("check"):
+        parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+        parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
+        parser.add_argument("--out", type=Path, required=True, help="report directory")
+        parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
+                            help="measurement noise sd per component [strain] (default: the files' sd columns)")
+        parser.add_argument("--noise-length", type=float, default=0.0,
+                            help="noise correlation length [mm] (default 0: independent cells)")
+        parser.add_argument("--noise-nugget", type=float, default=0.0,
+                            help="uncorrelated share of the noise variance in [0, 1] (default 0)")
+        parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
+        parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
+        parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
+        parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
+        parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
         return parser
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
@@ -162,7 +180,40 @@ def cmd_noise(args) -> None:
           f"{int((data.status == 1).sum())} simulations\nwrote {args.out}")
 
 
-COMMANDS = {"infer": cmd_infer, "study": cmd_study, "noise": cmd_noise}
+def cmd_check(args) -> None:
+    from mpi4py import MPI
+
+    from inference.check import CheckSettings, run_check
+    from inference.check_report import write_report
+    from inference.criticism import NoiseModel
+    from inference.observations import from_measurements
+    from skinfem.effects import EFFECTS
+    from surrogate.emulator import Emulator
+
+    settings = CheckSettings(candidates=args.candidates or list(EFFECTS), add=args.add, increments=args.increments,
+                             confirm=args.confirm)
+    emulator = Emulator.load(args.emulator)
+    obs = from_measurements(args.measurement, emulator.xy, float(emulator.meta.get("block_half_length", 25.0)))
+    if args.noise_sd is not None:
+        sd = np.array(args.noise_sd)
+    elif all(o.sd is not None for o in obs):
+        sd = np.median([o.sd for o in obs], axis=0)
+    else:
+        raise ValueError("the measurements have no sd_exx, sd_eyy, sd_exy columns: give --noise-sd XX YY XY")
+    noise = NoiseModel(sd, args.noise_length, args.noise_nugget)
+    comm = MPI.COMM_WORLD
+    result = run_check(emulator, obs, noise, settings, args.mesh_dir, comm)
+    if comm.rank == 0:
+        path = write_report(result, args.out)
+        print(result.diagnosis.text)
+        for v in result.versions:
+            m = v.metrics
+            print(f"{v.calibration.label:>30}: RMSE {m['rmse']:.3e}, chi2/dof {m['chi2_per_dof']:.3f}, "
+                  f"PPC p {m['ppc_p']:.3f}, {'structured' if m['structured'] else 'consistent with noise'}")
+        print(f"wrote {path}")
+
+
+COMMANDS = {"infer": cmd_infer, "study": cmd_study, "noise": cmd_noise, "check": cmd_check}
 
 
 def main(argv: list[str] | None = None) -> int:

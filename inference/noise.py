@@ -2,9 +2,9 @@
 
 Noise fields are zero-mean Gaussian processes on the skin-cell centroids with an RBF kernel
 
-    cov(x_i, x_j) = a_c^2 exp(-|x_i - x_j|^2 / (2 l^2)),
+    cov(x_i, x_j) = a_c^2 [(1 - w) exp(-|x_i - x_j|^2 / (2 l^2)) + w delta_ij],
 
-length scale l [mm] and amplitude a_c = level x max |strain_c| over the training materials
+length scale l [mm], uncorrelated share w (the "nugget", 0 in the paper's study) and amplitude a_c = level x max |strain_c| over the training materials
 of the clean dataset, per component c. One Cholesky factor of the correlation matrix
 (O(n_cells^3) once, ~1 s for the 4,624 cells of the paper mesh) serves every field; each
 field then costs one (n_cells x n_cells) triangular product, so all fields of a dataset are
@@ -22,11 +22,28 @@ from scipy.spatial.distance import cdist
 from skinfem.io import STATUS_OK, StrainDataset, create_dataset_like, write_atomically, write_simulation
 
 
-def correlation_factor(xy: np.ndarray, length: float, jitter: float = 1e-8) -> np.ndarray:
-    """Lower Cholesky factor (n, n) of the RBF correlation matrix of points xy (n, 2) [mm]."""
+def correlation_matrix(xy: np.ndarray, length: float, nugget: float = 0.0) -> np.ndarray:
+    """(n, n) correlation of noise at points xy (n, 2) [mm]: (1 - nugget) RBF(length) + nugget I.
+
+    ``length = 0`` means independent cells (the identity); ``nugget`` in [0, 1] is the share of
+    the variance that is uncorrelated (pixel noise on top of the subset-correlated DIC error).
+    """
+    if length < 0:
+        raise ValueError(f"noise length scale must be >= 0 mm, got {length}")
+    if not 0 <= nugget <= 1:
+        raise ValueError(f"noise nugget must be in [0, 1], got {nugget}")
+    if length == 0:
+        return np.eye(len(xy))
+    corr = (1 - nugget) * np.exp(-cdist(xy, xy, "sqeuclidean") / (2 * length**2))
+    corr[np.diag_indices_from(corr)] += nugget
+    return corr
+
+
+def correlation_factor(xy: np.ndarray, length: float, jitter: float = 1e-8, nugget: float = 0.0) -> np.ndarray:
+    """Lower Cholesky factor (n, n) of :func:`correlation_matrix` (``jitter`` added on the diagonal)."""
     if length <= 0:
         raise ValueError(f"noise length scale must be > 0 mm, got {length}")
-    corr = np.exp(-cdist(xy, xy, "sqeuclidean") / (2 * length**2))
+    corr = correlation_matrix(xy, length, nugget)
     corr[np.diag_indices_from(corr)] += jitter
     return np.linalg.cholesky(corr)
 

@@ -106,35 +106,55 @@ def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title:
 def strain_maps(xy: np.ndarray, fields: list[np.ndarray], titles: list[str], path: Path | str,
                 membrane_half: float = 10.0, theta_deg: float | None = None, window: float = 20.0,
                 symmetric: bool = True, suptitle: str = "") -> Path:
-    """Cell-wise strain maps (one panel per field), membrane outline dashed, fiber direction.
+    """One row of cell-wise strain maps (see :func:`field_grid`)."""
+    return field_grid(xy, [fields], [titles], path, membrane_half, theta_deg, window, symmetric, suptitle)
+
+
+def field_grid(xy: np.ndarray, rows: list[list[np.ndarray]], titles: list[list[str]], path: Path | str,
+               membrane_half: float = 10.0, theta_deg: float | None = None, window: float = 20.0,
+               symmetric: bool = True, suptitle: str = "", label: str = "log strain [-]",
+               shared_rows: bool = False) -> Path:
+    """Cell-wise maps in a grid, membrane outline dashed, fiber direction arrowed.
 
     Args:
-        xy: (n_cells, 2) centroids [mm]; fields: list of (n_cells,) strain values [-].
+        xy: (n_cells, 2) centroids [mm]; rows: lists of (n_cells,) values (NaN = not observed).
         window: half-width of the shown region [mm].
+        symmetric: diverging colour map centred on 0 (else sequential from the minimum).
+        shared_rows: one colour scale per row (e.g. measured and model side by side).
     """
     plt = _pyplot()
     from matplotlib.tri import Triangulation
 
     tri = Triangulation(xy[:, 0], xy[:, 1])
-    fig, axes = plt.subplots(1, len(fields), figsize=(4.3 * len(fields), 3.9), squeeze=False)
-    for ax, values, title in zip(axes[0], fields, titles):
-        vmax = np.nanmax(np.abs(values)) if symmetric else None
-        im = ax.tripcolor(tri, values, shading="gouraud", cmap="RdBu_r" if symmetric else "viridis",
-                          vmin=-vmax if symmetric else None, vmax=vmax)
-        h = membrane_half
-        ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)
-        if theta_deg is not None:
-            t = np.radians(theta_deg)
-            ax.annotate("", xy=(0.8 * window * np.cos(t) - 0.9 * window, 0.8 * window * np.sin(t) - 0.9 * window),
-                        xytext=(-0.9 * window, -0.9 * window), arrowprops=dict(arrowstyle="->", color="k", lw=1.5))
-            ax.text(-0.88 * window, -0.75 * window, "fibers", fontsize=8)
-        ax.set_xlim(-window, window)
-        ax.set_ylim(-window, window)
-        ax.set_aspect("equal")
-        ax.set_xlabel("x [mm]")
-        ax.set_ylabel("y [mm]")
-        ax.set_title(title, fontsize=10)
-        fig.colorbar(im, ax=ax, label="log strain [-]", shrink=0.85)
+    n_rows, n_cols = len(rows), max(len(r) for r in rows)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.3 * n_cols, 3.9 * n_rows), squeeze=False)
+    for r, (row, row_titles) in enumerate(zip(rows, titles)):
+        row_max = max(np.nanmax(np.abs(v)) for v in row)
+        for ax, values, title in zip(axes[r], row, row_titles):
+            vmax = row_max if shared_rows else np.nanmax(np.abs(values))
+            shown = np.where(np.isfinite(values), values, 0.0)
+            masked = ~np.all(np.isfinite(values[tri.triangles]), axis=1)
+            tri.set_mask(masked)
+            im = ax.tripcolor(tri, shown, shading="gouraud", cmap="RdBu_r" if symmetric else "viridis",
+                              vmin=-vmax if symmetric else None, vmax=vmax)
+            tri.set_mask(None)
+            h = membrane_half
+            ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)
+            if theta_deg is not None:
+                t = np.radians(theta_deg)
+                tail = -0.9 * window
+                ax.annotate("", xy=(tail + 0.35 * window * np.cos(t), tail + 0.35 * window * np.sin(t)),
+                            xytext=(tail, tail), arrowprops=dict(arrowstyle="->", color="k", lw=1.5))
+                ax.text(tail + 0.4 * window, tail, f"fibers {theta_deg:.0f}°", fontsize=8, va="center")
+            ax.set_xlim(-window, window)
+            ax.set_ylim(-window, window)
+            ax.set_aspect("equal")
+            ax.set_xlabel("x [mm]")
+            ax.set_ylabel("y [mm]")
+            ax.set_title(title, fontsize=10)
+            fig.colorbar(im, ax=ax, label=label, shrink=0.85)
+        for ax in axes[r, len(row):]:
+            ax.axis("off")
     if suptitle:
         fig.suptitle(suptitle, fontsize=11)
     fig.tight_layout()

@@ -19,6 +19,7 @@ ROUTES: dict[str, tuple[str, str]] = {
     "infer": ("inference.__main__", "NUTS posterior of the skin parameters"),
     "noise": ("inference.__main__", "add spatially correlated noise to a dataset"),
     "study": ("inference.__main__", "test-set | setups | noise: many posteriors, accuracy and coverage"),
+    "check": ("inference.__main__", "model criticism: residuals, where the model fails, the missing effect"),
 }
 
 

@@ -19,7 +19,7 @@ Formulation (see README "Forward model"):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,6 +30,7 @@ from skinfem.config import Config
 from skinfem.fenics import PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
+from skinfem.effects import ModelTerms, get_effect
 from skinfem.params import Design, SkinParams
 from skinfem.strain import SkinStrainSampler, top_skin_cells
 
@@ -68,9 +69,12 @@ class SkinModel:
         config: validated configuration (mesh, materials, solver).
         comm: MPI communicator the model is distributed over.
         mesh_dir: where meshes are read from / generated into.
+        effects: names of :mod:`skinfem.effects` to include; their parameters start at the
+            null values (the baseline) and are set with :meth:`set_effects`.
     """
 
-    def __init__(self, config: Config, comm: MPI.Comm = MPI.COMM_WORLD, mesh_dir=DEFAULT_MESH_DIR):
+    def __init__(self, config: Config, comm: MPI.Comm = MPI.COMM_WORLD, mesh_dir=DEFAULT_MESH_DIR,
+                 effects: Sequence[str] = ()):
         t0 = time.perf_counter()
         self.config = config
         self.comm = comm
@@ -88,23 +92,28 @@ class SkinModel:
         self.a0 = dolfinx.fem.Constant(mesh, np.array([1.0, 0.0, 0.0], dtype=PETSc.ScalarType))
         self.alpha11, self.alpha22 = c(0.0), c(0.0)
 
-        F = ufl.Identity(3) + ufl.grad(self.u)
         dx = ufl.Measure(
             "dx",
             domain=mesh,
             subdomain_data=self.cell_tags,
             metadata={"quadrature_degree": solver.quadrature_degree},
         )
-        skin_K = config.skin.bulk_ratio * self.mu
-        energy = hgo_energy(
-            F, self.mu, self.k1, self.k2, self.kappa, self.a0, skin_K, config.skin.fiber_invariant
+        terms = self._model_terms(effects)
+        F = ufl.Identity(3) + ufl.grad(self.u)
+        G, F0 = terms.skin_map, terms.skin_prestretch
+        F_skin, F_elastic, weight = F, F, 1.0  # baseline: stress-free skin of mesh thickness
+        if self.effects:
+            F_skin = ufl.Identity(3) + ufl.grad(self.u) * ufl.inv(G)
+            F_elastic, weight = F_skin * F0, ufl.det(G) / ufl.det(F0)
+        skin_K = terms.skin_bulk_ratio * self.mu
+        energy = weight * hgo_energy(
+            F_elastic, self.mu, self.k1, self.k2, self.kappa, self.a0, skin_K, config.skin.fiber_invariant
         ) * dx(TAGS["skin"])
         muscle = config.muscle
-        energy += neo_hookean_energy(F, muscle.mu, muscle.bulk_ratio * muscle.mu) * dx(TAGS["muscle"])
+        energy += neo_hookean_energy(F, terms.muscle_mu, muscle.bulk_ratio * terms.muscle_mu) * dx(TAGS["muscle"])
         self.has_membrane = config.membrane.model == "elastic"
         if self.has_membrane:
-            lamina = LaminaStiffness.from_config(config.membrane)
-            energy += membrane_energy(F, self.alpha11, self.alpha22, lamina) * dx(TAGS["membrane"])
+            energy += membrane_energy(F, self.alpha11, self.alpha22, terms.lamina) * dx(TAGS["membrane"])
         self.energy = energy
         v = ufl.TestFunction(self.V)
         du = ufl.TrialFunction(self.V)
@@ -132,8 +141,51 @@ class SkinModel:
         )
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
         cells = top_skin_cells(mesh, self.cell_tags, TAGS["skin"], depth)
-        self.strain_sampler = SkinStrainSampler(self.u, cells, solver.quadrature_degree)
+        # strain is measured from the unloaded equilibrium u_ref (zero unless pre-stressed)
+        self.u_ref = dolfinx.fem.Function(self.V, name="reference_displacement")
+        F_seen = F
+        if self.effects:
+            F_seen = F_skin * ufl.inv(ufl.Identity(3) + ufl.grad(self.u_ref) * ufl.inv(G))
+        self.strain_sampler = SkinStrainSampler(self.u, cells, solver.quadrature_degree, F_seen)
         self.setup_seconds = time.perf_counter() - t0
+
+    def _model_terms(self, effects: Sequence[str]) -> ModelTerms:
+        """Baseline energy terms, edited by each effect; effect parameters become Constants."""
+        config, mesh = self.config, self.mesh
+        terms = ModelTerms(
+            skin_map=ufl.Identity(3),
+            skin_prestretch=ufl.Identity(3),
+            skin_bulk_ratio=config.skin.bulk_ratio,
+            muscle_mu=config.muscle.mu,
+            lamina=LaminaStiffness.from_config(config.membrane) if config.membrane.model == "elastic" else None,
+        )
+        self.effects = [get_effect(name)() for name in dict.fromkeys(effects)]
+        self.effect_constants: dict[str, dolfinx.fem.Constant] = {}
+        for effect in self.effects:
+            if effect.name == "bonding" and terms.lamina is None:
+                raise ValueError("the bonding effect needs membrane.model = 'elastic'")
+            p = {}
+            for q in effect.parameters:
+                p[q.name] = dolfinx.fem.Constant(mesh, PETSc.ScalarType(q.null))
+                self.effect_constants[f"{effect.name}.{q.name}"] = p[q.name]
+            effect.apply(terms, p)
+        self.prestressed = any(e.prestressed for e in self.effects)
+        return terms
+
+    def set_effects(self, values: dict[str, float]) -> None:
+        """Set effect parameters by qualified name (``"pre_stretch.eps_xx"``); others keep theirs.
+
+        Raises:
+            ValueError: an unknown name (the message lists the model's effect parameters) or a
+                non-finite value.
+        """
+        for name, value in values.items():
+            if name not in self.effect_constants:
+                known = ", ".join(self.effect_constants) or "none (model built without effects)"
+                raise ValueError(f"unknown effect parameter '{name}'; this model has: {known}")
+            if not np.isfinite(value):
+                raise ValueError(f"effect parameter {name} must be finite, got {value}")
+            self.effect_constants[name].value = value
 
     # -- boundary conditions -------------------------------------------------------------
     def _boundary_conditions(self):
@@ -213,6 +265,13 @@ class SkinModel:
         self.set_params(params)
         x = self.u.x.array
         x[:] = 0.0
+        self.u_ref.x.array[:] = 0.0
+        if self.prestressed:
+            self._set_load(0.0, design)
+            converged, _ = self._newton()
+            if not converged:
+                raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
+            self.u_ref.x.array[:] = x
         targets = self.load_fractions()
         base_step = targets[0]
         t, step = 0.0, base_step

@@ -53,9 +53,11 @@ class SkinStrainSampler:
         u: displacement Function (mm).
         cells: local owned cell indices to observe.
         quadrature_degree: degree of the quadrature rule used for the cell average.
+        F: UFL deformation gradient to measure (default I + grad u), e.g. relative to a
+            pre-stressed reference.
     """
 
-    def __init__(self, u, cells: np.ndarray, quadrature_degree: int):
+    def __init__(self, u, cells: np.ndarray, quadrature_degree: int, F=None):
         import basix
 
         mesh = u.function_space.mesh
@@ -64,7 +66,7 @@ class SkinStrainSampler:
         self.cells = np.asarray(cells, dtype=np.int32)
         cell_type = basix.CellType[mesh.topology.cell_name()]
         points, weights = basix.make_quadrature(cell_type, max(quadrature_degree, 1))
-        F = ufl.Identity(3) + ufl.grad(u)
+        F = ufl.Identity(3) + ufl.grad(u) if F is None else F
         self._F_expr = dolfinx.fem.Expression(F, points)
         detJ = abs(ufl.JacobianDeterminant(mesh))
         dV = dolfinx.fem.Expression(detJ, points).eval(mesh, self.cells) * weights[None, :]
