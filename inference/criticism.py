@@ -55,7 +55,7 @@ class NoiseModel:
     sd: np.ndarray
     length: float = 0.0
     nugget: float = 1.0
-    _whiteners: dict = field(default_factory=dict, repr=False)
+    _whiteners: dict = field(default_factory=dict, repr=False)  # cached matrix roots
 
     def __post_init__(self):
         self.sd = np.asarray(self.sd, dtype=float)
@@ -65,7 +65,7 @@ class NoiseModel:
 
     def whitener(self, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Symmetric R^(-1/2) (m, m) on the masked cells (cached per mask)."""
-        key = mask.tobytes()
+        key = ("whitener", xy.tobytes(), mask.tobytes())
         if key not in self._whiteners:
             corr = correlation_matrix(xy[mask], self.length, self.nugget)
             w, v = np.linalg.eigh(corr)
@@ -82,9 +82,11 @@ class NoiseModel:
 
     def sample(self, xy: np.ndarray, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
         """Noise fields (*shape, n_cells, 3) drawn from this model."""
-        corr = correlation_matrix(xy, self.length, self.nugget)
-        w, v = np.linalg.eigh(corr)
-        root = v * np.sqrt(np.maximum(w, 0))
+        key = ("root", xy.tobytes())
+        if key not in self._whiteners:
+            w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
+            self._whiteners[key] = v * np.sqrt(np.maximum(w, 0))
+        root = self._whiteners[key]
         white = rng.standard_normal((*shape, 3, len(xy)))
         return np.swapaxes(white @ root.T, -1, -2) * self.sd
 

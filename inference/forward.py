@@ -136,6 +136,7 @@ class TaylorForward(ForwardModel):
 
     def __init__(self, base: ForwardModel, x0: np.ndarray, steps: np.ndarray | None = None):
         self.names, self.bounds, self.null = base.names, base.bounds, base.null
+        self.base = base
         self.x0 = np.asarray(x0, dtype=float)
         steps = 0.01 * np.ptp(self.bounds, axis=1) if steps is None else np.asarray(steps, float)
         eye = np.diag(steps)

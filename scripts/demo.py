@@ -3,7 +3,8 @@
     python scripts/demo.py [--out out/demo]
 
 mesh -> sweep (80 FE simulations) -> PCA + GP emulator + validation -> posterior of a
-held-out material from the "mixed" design -> report.md with the figures.
+held-out material from the "mixed" design -> model criticism of synthetic measurements of that
+material with a hidden skin pre-stretch -> report.md with the figures.
 """
 
 from __future__ import annotations
@@ -38,14 +39,14 @@ def main() -> None:
     data, emu, post = out / "small.h5", out / "emulator", out / "posterior"
     mpirun = BIN / "mpirun"
 
-    step("1/4 sweep: 16 materials x 5 membrane designs x 10 frames (small preset)")
+    step("1/5 sweep: 16 materials x 5 membrane designs x 10 frames (small preset)")
     cmd = ["sweep", "--config", "small", "--out", str(data)] + (["--resume"] if data.exists() else [])
     if mpirun.exists():
         subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *cmd], check=True)
     else:
         run(*cmd)
 
-    step("2/4 surrogate: PCA + GPs, validated on the 4 held-out materials")
+    step("2/5 surrogate: PCA + GPs, validated on the 4 held-out materials")
     if not (emu / "validation.json").exists():
         run("surrogate", "fit", "--data", str(data), "--out", str(emu), "--gp-fraction", "0.5")
 
@@ -57,14 +58,35 @@ def main() -> None:
     material = int(np.flatnonzero(dataset.split)[0])
     mixed = int(np.flatnonzero(np.all(np.isclose(dataset.designs, [0.05, -0.05]), axis=1))[0])
 
-    step(f"3/4 posterior of held-out material {material} from the mixed design (0.05, -0.05)")
+    step(f"3/5 posterior of held-out material {material} from the mixed design (0.05, -0.05)")
     if not (post / "summary.json").exists():
         run("infer", "--emulator", str(emu), "--data", str(data), "--material", str(material),
             "--designs", str(mixed), "--out", str(post), "--gp-variance", "mode")
     summary = json.loads((post / "summary.json").read_text())
 
-    step("4/4 report")
     truth = dataset.params[material]
+    check = out / "check"
+    step(f"4/5 model criticism: material {material} with a hidden pre-stretch 1.08 x 1.02 at 30 deg")
+    if not (check / "report.json").exists():
+        from inference.criticism import NoiseModel
+        from inference.synthetic import synthetic_measurements
+        from skinfem.config import load_config
+        from skinfem.effects import prestretch_log_strain
+        from skinfem.params import SkinParams
+
+        hidden = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
+        files = synthetic_measurements(load_config("small"), SkinParams.from_array(truth), [(0.05, 0.05), (0.05, -0.05)],
+                                       NoiseModel(np.full(3, 2e-4), 2.0, 0.3), out / "measurements", hidden, seed=1,
+                                       increments=2)
+        cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
+               "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2"]
+        if mpirun.exists():
+            subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *cmd], check=True)
+        else:
+            run(*cmd)
+    criticism = json.loads((check / "report.json").read_text())
+
+    step("5/5 report")
     fe = dataset.strain(material, mixed, -1)
     median = np.array([summary["parameters"][n]["median"] for n in ("mu", "k1", "k2", "kappa", "theta")])
     pred = emulator.predict_fields(median[None], dataset.designs[mixed], 1.0)[0]
@@ -78,6 +100,11 @@ def main() -> None:
         for n, e in summary["parameters"].items() if "true" in e
     )
     val = json.loads((emu / "validation.json").read_text())["components"]
+    versions = "\n".join(
+        f"| {v['label']} | {v['metrics']['rmse']:.2e} | {v['metrics']['chi2_per_dof']:.2f} | "
+        f"{v['metrics']['ppc_p']:.3f} | {'no' if v['metrics']['structured'] else 'yes'} |"
+        for v in criticism["versions"]
+    )
     report = f"""# skinid demo (small preset)
 
 Dataset `{data.name}`: 16 materials × 5 designs × 10 frames, {dataset.xy.shape[0]} skin cells.
@@ -97,7 +124,23 @@ E_yy {', '.join(f'{v:.4f}' for v in val['yy']['r2_per_pc'])}.
 
 ![emulator validation](emulator/validation.png)
 
-Model criticism is not part of the demo yet.
+## Model criticism: measurements with a hidden skin pre-stretch
+
+Synthetic DIC measurements of material {material} under two membranes, made with a skin
+pre-stretch of 1.08 × 1.02 at 30° that the baseline model does not have, plus correlated noise
+(sd 2e-4, 2 mm). Full report: [check/report.md](check/report.md).
+
+> {criticism["verdict"]}
+
+| version | RMSE | χ²/dof | PPC p | consistent with noise |
+|---|---|---|---|---|
+{versions}
+
+![error falls](check/error_falls.png)
+
+![where the baseline fails](check/regions.png)
+
+![baseline residual](check/residual_baseline_obs1.png)
 """
     (out / "report.md").write_text(report)
     print(f"\ndemo finished in {time.perf_counter() - start:.0f} s; report: {out / 'report.md'}")

@@ -1,0 +1,186 @@
+"""Model criticism: the statistics against closed forms, the false-alarm rate, and the whole
+``skinid check`` on FE data with a hidden pre-stretch."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from inference.criticism import (
+    Data,
+    NoiseModel,
+    calibrate,
+    diagnose,
+    residual_metrics,
+    score_candidates,
+    signatures,
+    stack,
+)
+from inference.forward import ForwardModel, TaylorForward, parameter_space
+from skinfem.effects import EFFECTS, prestretch_log_strain
+from skinfem.params import SkinParams
+from tests.cli_helpers import MPIRUN, skinid
+
+TRUTH = SkinParams(0.0012, 0.017, 11.0, 0.285, 30.0)
+PRESTRETCH = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
+NOISE = dict(sd=np.full(3, 2e-4), length=2.0, nugget=0.3)  # DIC-like: 200 microstrain, 2 mm subsets
+
+
+class LinearForward(ForwardModel):
+    """fields = A x (n_obs=1, cells on a grid): exact reference for the statistics."""
+
+    def __init__(self, A, names, bounds, null):
+        self.A, self.names, self.bounds, self.null = A, names, bounds, null
+
+    def evaluate_many(self, points):
+        self.runs += len(points)
+        return [(self.A @ np.asarray(x)).reshape(1, -1, 3) for x in points]
+
+
+@pytest.fixture(scope="module")
+def grid_xy():
+    g = np.linspace(-20, 20, 13)
+    return np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+
+
+@pytest.fixture(scope="module")
+def linear_world(grid_xy):
+    rng = np.random.default_rng(0)
+    names, bounds, null = parameter_space(np.array([[0, 1]] * 5), list(EFFECTS))
+    bounds = np.array([[-5.0, 5.0]] * len(names))
+    A = rng.normal(size=(grid_xy.size // 2 * 3, len(names))) * 1e-3
+    return LinearForward(A, names, bounds, np.zeros(len(names)))
+
+
+def test_whitening_makes_the_noise_model_white(grid_xy):
+    noise = NoiseModel(**NOISE)
+    draws = noise.sample(grid_xy, (4000,), np.random.default_rng(1))
+    masks = np.ones((4000, len(grid_xy)), bool)
+    white = noise.whiten(draws, grid_xy, masks)[:, :, 0]
+    cov = white.T @ white / len(white)
+    assert np.abs(np.diag(cov) - 1).max() < 0.15
+    assert np.abs(cov - np.diag(np.diag(cov))).max() < 0.1
+
+
+def test_calibration_equals_least_squares_and_its_covariance(linear_world, grid_xy):
+    """Linear model, independent noise: the fit is the normal-equation solution exactly."""
+    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
+    truth = np.zeros(len(linear_world.names))
+    truth[:5] = [0.5, -1, 2, 0.3, -0.7]
+    y = linear_world(truth) + noise.sample(grid_xy, (1,), np.random.default_rng(2))
+    data = Data(y, np.ones((1, len(grid_xy)), bool), grid_xy, noise)
+    cal = calibrate(linear_world, data, np.zeros(len(truth)), list(range(5)), max_iterations=20)
+    A = linear_world.A[:, :5] / 1e-4
+    expected = np.linalg.lstsq(A, y.ravel() / 1e-4, rcond=None)[0]
+    assert cal.x[:5] == pytest.approx(expected, abs=1e-6)
+    assert cal.cov == pytest.approx(np.linalg.inv(A.T @ A), rel=1e-4)
+
+
+def test_score_statistic_equals_the_fitted_chi2_drop_for_a_linear_model(linear_world, grid_xy):
+    """For a linear Gaussian model the efficient score test and the likelihood ratio coincide."""
+    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
+    x = np.zeros(len(linear_world.names))
+    x[linear_world.names.index("bonding.compliance")] = 0.8
+    y = linear_world(x) + noise.sample(grid_xy, (1,), np.random.default_rng(3))
+    data = Data(y, np.ones((1, len(grid_xy)), bool), grid_xy, noise)
+    cal = calibrate(linear_world, data, np.zeros(len(x)), list(range(5)), max_iterations=20)
+    scores = {s.effect: s for s in score_candidates(cal, data, signatures(linear_world, cal, data, list(EFFECTS)))}
+    free = list(range(5)) + linear_world.index(["bonding.compliance"])
+    fit = calibrate(linear_world, data, cal.x, free, max_iterations=20)
+    drop = residual_metrics(cal, data)["chi2"] - residual_metrics(fit, data)["chi2"]
+    assert scores["bonding"].statistic == pytest.approx(drop, rel=1e-6)
+    assert max(scores, key=lambda k: scores[k].statistic) == "bonding"
+
+
+@pytest.fixture(scope="module")
+def taylor_at_truth(small_config, mesh_dir):
+    """First-order expansion of the FE model (all effects) about the truth: one design."""
+    from inference.forward import FEForward
+    from inference.observations import Observation
+
+    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    obs = [Observation(alpha=np.array([0.05, -0.05]), t=1.0, fields=None, mask=None)]
+    fe = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF)
+    x0 = fe.null.copy()
+    x0[:5] = TRUTH.as_array()
+    return TaylorForward(fe, x0), fe.xy
+
+
+def test_no_effect_is_reported_on_noise_only_data(taylor_at_truth):
+    """False-alarm check: 60 noise realisations of effect-free data on the linearised FE model."""
+    forward, xy = taylor_at_truth
+    noise = NoiseModel(**NOISE)
+    rng = np.random.default_rng(4)
+    start = forward.x0 + np.concatenate([0.05 * np.ptp(forward.bounds[:5], axis=1), np.zeros(len(forward.x0) - 5)])
+    alarms, structured = 0, 0
+    for _ in range(60):
+        y = forward.f0 + noise.sample(xy, (1,), rng)
+        data = Data(y, np.ones((1, len(xy)), bool), xy, noise)
+        cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
+        d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
+        structured += d.metrics["structured"]
+        alarms += d.best is not None
+    assert alarms <= 3, f"{alarms} false alarms in 60"
+    assert structured <= 6  # the PPC flags ~1 % of pure-noise residuals
+
+
+def test_linearised_fe_model_is_accurate_near_its_expansion_point(taylor_at_truth):
+    """The Taylor model must reproduce FE at a nearby point (2 % of the prior box away)."""
+    forward, _ = taylor_at_truth
+    # TaylorForward keeps the base model's cache: re-evaluate FE at a new point through it
+    x = forward.x0 + 0.02 * np.ptp(forward.bounds, axis=1) * np.sign(np.arange(len(forward.x0)) % 2 - 0.5)
+    assert np.abs(forward(x) - forward.base(x)).max() < 0.1 * np.abs(forward(x) - forward.f0).max()
+
+
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, mesh_dir, tmp_path):
+    from inference.synthetic import synthetic_measurements
+
+    noise = NoiseModel(**NOISE)
+    files = synthetic_measurements(small_config, TRUTH, [(0.05, 0.05), (0.05, -0.05)], noise, tmp_path / "m",
+                                   PRESTRETCH, seed=5, mesh_dir=mesh_dir, increments=2)
+    res = skinid("check", "--emulator", small_emulator, "--measurement", *files, "--out", tmp_path / "report",
+                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--add", "pre_stretch", "--increments", 2,
+                 "--confirm", 1, "--mesh-dir", mesh_dir, ranks=2)
+    assert res.returncode == 0, res.stderr[-3000:]
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    base, final = report["versions"][0], report["versions"][-1]
+    assert base["metrics"]["structured"]
+    assert report["candidates"][0]["effect"] == "pre_stretch" and report["candidates"][0]["explains"]
+    assert not any(c["explains"] for c in report["candidates"][1:])
+    assert final["metrics"]["rmse"] <= 0.5 * base["metrics"]["rmse"]
+    assert not final["metrics"]["structured"]
+    assert final["metrics"]["rmse"] < 1.15 * final["metrics"]["noise_rms"]
+    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    truth = (TRUTH.as_array() - bounds[:, 0]) / np.ptp(bounds, axis=1)
+
+    def distance(version):
+        est = np.array([version["estimates"][n]["value"] for n in ("mu", "k1", "k2", "kappa", "theta")])
+        return np.linalg.norm((est - bounds[:, 0]) / np.ptp(bounds, axis=1) - truth)
+
+    assert distance(final) < 0.5 * distance(base)
+    for name, value in PRESTRETCH.items():
+        e = final["estimates"][name]
+        assert abs(e["value"] - value) < 4 * e["sd"] + 0.005
+    assert "pre_stretch" in report["verdict"] and "--add pre_stretch" in report["verdict"]
+    for png in ("regions.png", "candidates.png", "error_falls.png", "residual_baseline_obs0.png",
+                "residual_final_obs1.png"):
+        assert (tmp_path / "report" / png).stat().st_size > 10_000
+    assert "Most likely missing: pre_stretch" in res.stdout
+
+
+def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emulator, tmp_path):
+    from inference.observations import write_measurement
+
+    g = np.linspace(-20, 20, 9)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    path = write_measurement(tmp_path / "m.csv", xy, np.zeros((len(xy), 3)), (0.05, 0.05), 1.0)
+    res = skinid("check", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "r")
+    assert res.returncode == 2 and "--noise-sd" in res.stderr
+    res = skinid("check", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "r",
+                 "--noise-sd", "1e-4", "1e-4", "1e-4", "--add", "gravity")
+    assert res.returncode == 2 and "unknown effect 'gravity'" in res.stderr
