@@ -145,12 +145,17 @@ def run_check(emulator: Emulator, observations: list[Observation], noise: NoiseM
 
     t0, runs0 = time.perf_counter(), forward.runs
     versions = [Version(baseline, metrics, diagnosis.regions)]
+    reused_s = reused_runs = 0
     for effect in settings.add:
         previous = versions[-1].calibration
-        cal = diagnosis.fits[effect] if len(versions) == 1 and effect in diagnosis.fits else \
-            extend(forward, previous, data, effect, max_iterations=settings.max_iterations)
+        if len(versions) == 1 and effect in diagnosis.fits:  # already calibrated while diagnosing
+            cal = diagnosis.fits[effect]
+            reused_s, reused_runs = reused_s + cal.seconds, reused_runs + cal.fe_runs
+        else:
+            cal = extend(forward, previous, data, effect, max_iterations=settings.max_iterations)
         versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
     timings["add_s"], timings["add_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
+    timings["add_reused_from_diagnose_s"], timings["add_reused_from_diagnose_fe_runs"] = reused_s, reused_runs
 
     predicted = np.stack([emulator.predict_fields(baseline.x[None, :5], o.alpha, o.t)[0] for o in observations])
     modelled = [COMPONENTS.index(c) for c in emulator.components]

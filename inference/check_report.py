@@ -107,6 +107,7 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     ax.set_yticks(y, [f"{s.effect}\n({s.share_explained:.0%} of excess, {'fit' if s.fitted else 'lin.'})"
                       for s in scores], fontsize=8)
     ax.set_xlabel("ΔBIC of adding the effect [-] (> 0 favours it)")
+    ax.set_title("which effect is missing (green: explains the residual)", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -191,7 +192,8 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     t = result.timings
     lines += ["", "## Cost", "",
               f"compare {t['compare_s']:.0f} s ({t['compare_fe_runs']} FE runs), diagnose {t['diagnose_s']:.0f} s "
-              f"({t['diagnose_fe_runs']} runs), add {t['add_s']:.0f} s ({t['add_fe_runs']} runs); "
+              f"({t['diagnose_fe_runs']} runs), add {t['add_s']:.0f} s ({t['add_fe_runs']} new runs; "
+              f"{t['add_reused_from_diagnose_fe_runs']} runs of fits made while diagnosing reused); "
               f"{result.fe_seconds_per_run:.2f} s per FE run.", ""]
     path = out / "report.md"
     path.write_text("\n".join(lines))
