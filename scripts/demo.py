@@ -29,6 +29,34 @@ def run(*args: str) -> None:
     subprocess.run([str(BIN / "skinid"), *args], check=True)
 
 
+def overview(out: Path, top: Path, bottom: list[Path]) -> Path:
+    """One figure of the demo for the README: strain maps on top; where the model fails and the
+    error falling below."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    top_image, images = plt.imread(top), [plt.imread(p) for p in bottom]
+    ratios = [im.shape[1] / im.shape[0] for im in images]
+    width = 16.0
+    bottom_height = width / sum(ratios)
+    top_height = width * top_image.shape[0] / top_image.shape[1]
+    fig = plt.figure(figsize=(width, top_height + bottom_height))
+    grid = fig.add_gridspec(2, len(images), height_ratios=[top_height, bottom_height], width_ratios=ratios,
+                            hspace=0.02, wspace=0.02)
+    ax = fig.add_subplot(grid[0, :])
+    ax.imshow(top_image)
+    ax.axis("off")
+    for k, im in enumerate(images):
+        ax = fig.add_subplot(grid[1, k])
+        ax.imshow(im)
+        ax.axis("off")
+    fig.savefig(out / "overview.png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return out / "overview.png"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
@@ -143,6 +171,7 @@ pre-stretch of 1.08 × 1.02 at 30° that the baseline model does not have, plus 
 ![baseline residual](check/residual_baseline_obs1.png)
 """
     (out / "report.md").write_text(report)
+    overview(out, out / "strain_maps.png", [check / "regions.png", check / "error_falls.png"])
     print(f"\ndemo finished in {time.perf_counter() - start:.0f} s; report: {out / 'report.md'}")
 
 

@@ -50,7 +50,8 @@ class ModelTerms:
             reference (in vivo) configuration; the skin energy is Psi(F F0) / det F0.
         skin_bulk_ratio: K/mu of the skin's volumetric term.
         muscle_mu: neo-Hookean shear modulus of the muscle [MPa].
-        lamina: membrane stiffness (its G13, G23 are the membrane-skin shear coupling).
+        lamina: membrane stiffness (its G13, G23 are the membrane-skin shear coupling); None
+            for a rigid membrane.
     """
 
     skin_map: object
@@ -132,13 +133,20 @@ def prestretch_log_strain(lambda1: float, lambda2: float, direction_deg: float) 
             "eps_xy": (e1 - e2) * c * s}
 
 
-class MuscleStiffness(Effect):
+class ScaledTerm(Effect):
+    """An effect that multiplies one scalar of :class:`ModelTerms` by exp(log_factor)."""
+
+    term: ClassVar[str]
+
+    def apply(self, terms: ModelTerms, p: dict[str, object]) -> None:
+        setattr(terms, self.term, getattr(terms, self.term) * ufl.exp(p["log_factor"]))
+
+
+class MuscleStiffness(ScaledTerm):
     name = "muscle_stiffness"
     description = "muscle shear modulus differs from the assumed one: mu_m = mu_m,config exp(p)"
     parameters = (EffectParameter("log_factor", "-", -1.6, 1.6, 0.0, "ln(mu_m / mu_m,config)"),)
-
-    def apply(self, terms: ModelTerms, p: dict[str, object]) -> None:
-        terms.muscle_mu = terms.muscle_mu * ufl.exp(p["log_factor"])
+    term = "muscle_mu"
 
 
 class SkinThickness(Effect):
@@ -154,13 +162,11 @@ class SkinThickness(Effect):
         terms.skin_map = ufl.dot(terms.skin_map, ufl.as_matrix([[1, 0, 0], [0, 1, 0], [0, 0, s]]))
 
 
-class Compressibility(Effect):
+class Compressibility(ScaledTerm):
     name = "compressibility"
     description = "skin compressibility differs from K/mu = 20: K/mu = bulk_ratio exp(p)"
     parameters = (EffectParameter("log_factor", "-", -1.6, 3.0, 0.0, "ln(K/mu / bulk_ratio)"),)
-
-    def apply(self, terms: ModelTerms, p: dict[str, object]) -> None:
-        terms.skin_bulk_ratio = terms.skin_bulk_ratio * ufl.exp(p["log_factor"])
+    term = "skin_bulk_ratio"
 
 
 class Bonding(Effect):
@@ -173,6 +179,8 @@ class Bonding(Effect):
 
     def apply(self, terms: ModelTerms, p: dict[str, object]) -> None:
         q = terms.lamina
+        if q is None:
+            raise ValueError("the bonding effect needs an elastic membrane (membrane.model = 'elastic')")
         terms.lamina = dataclasses.replace(
             q, G13=1 / (1 / q.G13 + p["compliance"]), G23=1 / (1 / q.G23 + p["compliance"])
         )

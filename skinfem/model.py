@@ -162,8 +162,6 @@ class SkinModel:
         self.effects = [get_effect(name)() for name in dict.fromkeys(effects)]
         self.effect_constants: dict[str, dolfinx.fem.Constant] = {}
         for effect in self.effects:
-            if effect.name == "bonding" and terms.lamina is None:
-                raise ValueError("the bonding effect needs membrane.model = 'elastic'")
             p = {}
             for q in effect.parameters:
                 p[q.name] = dolfinx.fem.Constant(mesh, PETSc.ScalarType(q.null))

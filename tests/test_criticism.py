@@ -184,3 +184,17 @@ def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emul
     res = skinid("check", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "r",
                  "--noise-sd", "1e-4", "1e-4", "1e-4", "--add", "gravity")
     assert res.returncode == 2 and "unknown effect 'gravity'" in res.stderr
+
+
+def test_an_effect_outside_the_candidates_is_not_attributed(linear_world, grid_xy):
+    """Data made with bonding, candidates without it: structured, but no candidate explains it."""
+    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
+    x = np.zeros(len(linear_world.names))
+    x[linear_world.names.index("bonding.compliance")] = 0.5
+    y = linear_world(x) + noise.sample(grid_xy, (1,), np.random.default_rng(6))
+    data = Data(y, np.ones((1, len(grid_xy)), bool), grid_xy, noise)
+    cal = calibrate(linear_world, data, np.zeros(len(x)), list(range(5)), max_iterations=20)
+    others = [e for e in EFFECTS if e != "bonding"]
+    d = diagnose(linear_world, cal, data, others, half=10.0, band=4.0, confirm=2, max_iterations=20)
+    assert d.metrics["structured"]
+    assert d.best is None and "No candidate explains the residual" in d.text
