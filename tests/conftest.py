@@ -44,7 +44,7 @@ def small_dataset(tmp_path_factory, mesh_dir):
 def small_emulator(small_dataset, tmp_path_factory):
     """An emulator of the small sweep (GPs on half of the training rows), saved and reloaded."""
     from skinfem.io import StrainDataset
-    from surrogate.emulator import Emulator, fit_emulator
+    from surrogate.emulator import fit_emulator
 
     emulator = fit_emulator(StrainDataset.open(small_dataset), gp_fraction=0.5, restarts=1, seed=0)
     directory = emulator.save(tmp_path_factory.mktemp("emulator") / "emu")

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -18,7 +17,6 @@ from inference.criticism import (
     residual_metrics,
     score_candidates,
     signatures,
-    stack,
 )
 from inference.forward import ForwardModel, TaylorForward, parameter_space
 from skinfem.effects import EFFECTS, prestretch_log_strain
@@ -56,6 +54,17 @@ def linear_world(grid_xy):
     return LinearForward(A, names, bounds, np.zeros(len(names)))
 
 
+def linear_data(world, xy, values: dict[str, float], seed: int):
+    """Independent-noise data of the linear world at the given parameters, and its baseline fit."""
+    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
+    x = np.zeros(len(world.names))
+    for name, value in values.items():
+        x[world.names.index(name)] = value
+    y = world(x) + noise.sample(xy, (1,), np.random.default_rng(seed))
+    data = Data(y, np.ones((1, len(xy)), bool), xy, noise)
+    return data, calibrate(world, data, np.zeros(len(x)), list(range(5)), max_iterations=20)
+
+
 def test_whitening_makes_the_noise_model_white(grid_xy):
     noise = NoiseModel(**NOISE)
     draws = noise.sample(grid_xy, (4000,), np.random.default_rng(1))
@@ -68,26 +77,17 @@ def test_whitening_makes_the_noise_model_white(grid_xy):
 
 def test_calibration_equals_least_squares_and_its_covariance(linear_world, grid_xy):
     """Linear model, independent noise: the fit is the normal-equation solution exactly."""
-    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
-    truth = np.zeros(len(linear_world.names))
-    truth[:5] = [0.5, -1, 2, 0.3, -0.7]
-    y = linear_world(truth) + noise.sample(grid_xy, (1,), np.random.default_rng(2))
-    data = Data(y, np.ones((1, len(grid_xy)), bool), grid_xy, noise)
-    cal = calibrate(linear_world, data, np.zeros(len(truth)), list(range(5)), max_iterations=20)
+    truth = dict(zip(("mu", "k1", "k2", "kappa", "theta"), (0.5, -1, 2, 0.3, -0.7)))
+    data, cal = linear_data(linear_world, grid_xy, truth, seed=2)
     A = linear_world.A[:, :5] / 1e-4
-    expected = np.linalg.lstsq(A, y.ravel() / 1e-4, rcond=None)[0]
+    expected = np.linalg.lstsq(A, data.fields.ravel() / 1e-4, rcond=None)[0]
     assert cal.x[:5] == pytest.approx(expected, abs=1e-6)
     assert cal.cov == pytest.approx(np.linalg.inv(A.T @ A), rel=1e-4)
 
 
 def test_score_statistic_equals_the_fitted_chi2_drop_for_a_linear_model(linear_world, grid_xy):
     """For a linear Gaussian model the efficient score test and the likelihood ratio coincide."""
-    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
-    x = np.zeros(len(linear_world.names))
-    x[linear_world.names.index("bonding.compliance")] = 0.8
-    y = linear_world(x) + noise.sample(grid_xy, (1,), np.random.default_rng(3))
-    data = Data(y, np.ones((1, len(grid_xy)), bool), grid_xy, noise)
-    cal = calibrate(linear_world, data, np.zeros(len(x)), list(range(5)), max_iterations=20)
+    data, cal = linear_data(linear_world, grid_xy, {"bonding.compliance": 0.8}, seed=3)
     scores = {s.effect: s for s in score_candidates(cal, data, signatures(linear_world, cal, data, list(EFFECTS)))}
     free = list(range(5)) + linear_world.index(["bonding.compliance"])
     fit = calibrate(linear_world, data, cal.x, free, max_iterations=20)
@@ -188,12 +188,7 @@ def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emul
 
 def test_an_effect_outside_the_candidates_is_not_attributed(linear_world, grid_xy):
     """Data made with bonding, candidates without it: structured, but no candidate explains it."""
-    noise = NoiseModel(np.full(3, 1e-4), 0.0, 0.0)
-    x = np.zeros(len(linear_world.names))
-    x[linear_world.names.index("bonding.compliance")] = 0.5
-    y = linear_world(x) + noise.sample(grid_xy, (1,), np.random.default_rng(6))
-    data = Data(y, np.ones((1, len(grid_xy)), bool), grid_xy, noise)
-    cal = calibrate(linear_world, data, np.zeros(len(x)), list(range(5)), max_iterations=20)
+    data, cal = linear_data(linear_world, grid_xy, {"bonding.compliance": 0.5}, seed=6)
     others = [e for e in EFFECTS if e != "bonding"]
     d = diagnose(linear_world, cal, data, others, half=10.0, band=4.0, confirm=2, max_iterations=20)
     assert d.metrics["structured"]

@@ -8,7 +8,7 @@ import torch
 
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator, model_inputs
-from surrogate.validation import validate, validate_directory
+from surrogate.validation import validate
 from tests.cli_helpers import skinid
 
 
