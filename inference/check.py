@@ -137,14 +137,13 @@ def run_check(emulator: Emulator, observations: list[Observation], noise: NoiseM
 
     t0, runs0 = time.perf_counter(), forward.runs
     baseline = calibrate(forward, data, x0, list(range(5)), max_iterations=settings.max_iterations)
-    metrics = residual_metrics(baseline, data)
     timings["compare_s"], timings["compare_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
     diagnosis = diagnose(forward, baseline, data, settings.candidates, half, band, settings.confirm,
-                         max_iterations=settings.max_iterations)
+                         max_iterations=settings.max_iterations)  # also the baseline's metrics
     timings["diagnose_s"], timings["diagnose_fe_runs"] = diagnosis.seconds, diagnosis.fe_runs
 
     t0, runs0 = time.perf_counter(), forward.runs
-    versions = [Version(baseline, metrics, diagnosis.regions)]
+    versions = [Version(baseline, diagnosis.metrics, diagnosis.regions)]
     reused_s = reused_runs = 0
     for effect in settings.add:
         previous = versions[-1].calibration

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.check import CheckResult
-from inference.plots import _pyplot, field_grid
+from inference.plots import pyplot, field_grid, save_figure
 from skinfem.effects import principal_prestretch
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
@@ -28,15 +28,14 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
         out = path.with_name(f"{path.stem}_obs{o}.png")
         field_grid(result.data.xy, rows, titles, out, result.half, float(cal.x[4]), window=2 * result.half,
                    suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
-                            f"residual RMSE {result.versions[version].metrics['rmse']:.2e}",
-                   shared_rows=False)
+                            f"residual RMSE {result.versions[version].metrics['rmse']:.2e}")
         paths.append(out)
     return paths
 
 
 def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     """Per-cell RMS standardised residual with the region outlines of the ranking."""
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.tri import Triangulation
 
     v = result.versions[version]
@@ -63,15 +62,12 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     ax.set_ylabel("y [mm]")
     ax.set_title(f"where the {v.calibration.label} model fails (dashed: membrane, dotted: edge strip, cyan: fibers)",
                  fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def error_falls_plot(result: CheckResult, path: Path) -> Path:
     """RMSE and chi^2/dof of each model version against the noise level."""
-    plt = _pyplot()
+    plt = pyplot()
     labels = [v.calibration.label.replace(" + ", "\n+ ") for v in result.versions]
     rmse = [v.metrics["rmse"] for v in result.versions]
     chi = [v.metrics["chi2_per_dof"] for v in result.versions]
@@ -88,15 +84,12 @@ def error_falls_plot(result: CheckResult, path: Path) -> Path:
     for ax in axes:
         ax.set_xticks(x, labels, fontsize=8)
     fig.suptitle("the error falls as missing physics is added", fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def candidates_plot(result: CheckResult, path: Path) -> Path:
     """Delta BIC of every candidate (symlog), coloured by whether it explains the residual."""
-    plt = _pyplot()
+    plt = pyplot()
     scores = result.diagnosis.scores
     fig, ax = plt.subplots(figsize=(7.5, 0.6 * len(scores) + 1.6))
     y = np.arange(len(scores))[::-1]
@@ -109,10 +102,7 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     ax.set_xlabel("ΔBIC of adding the effect [-] (> 0 favours it)")
     ax.set_title("which effect is missing (green: explains the residual)", fontsize=10)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _fmt(value: float) -> str:
@@ -213,7 +203,7 @@ def report_dict(result: CheckResult) -> dict:
         "subspace_share": result.subspace,
         "emulator_rmse_at_calibration": result.emulator_rmse,
         "regions": d.regions,
-        "candidates": [{k: v for k, v in vars(s).items()} for s in d.scores],
+        "candidates": [dict(vars(s)) for s in d.scores],
         "versions": [{"label": v.calibration.label, "metrics": v.metrics, "regions": v.regions,
                       "estimates": v.calibration.estimates(), "fe_runs": v.calibration.fe_runs}
                      for v in result.versions],

@@ -39,7 +39,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from inference.forward import ForwardModel
-from inference.noise import correlation_matrix
+from inference.noise import correlation_matrix, noise_fields
 from inference.observations import Observation
 from skinfem.effects import get_effect, principal_prestretch
 
@@ -55,7 +55,7 @@ class NoiseModel:
     sd: np.ndarray
     length: float = 0.0
     nugget: float = 1.0
-    _whiteners: dict = field(default_factory=dict, repr=False)  # cached matrix roots
+    _roots: dict = field(default_factory=dict, repr=False)  # cached matrix (inverse) square roots
 
     def __post_init__(self):
         self.sd = np.asarray(self.sd, dtype=float)
@@ -66,12 +66,12 @@ class NoiseModel:
     def whitener(self, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Symmetric R^(-1/2) (m, m) on the masked cells (cached per mask)."""
         key = ("whitener", xy.tobytes(), mask.tobytes())
-        if key not in self._whiteners:
+        if key not in self._roots:
             corr = correlation_matrix(xy[mask], self.length, self.nugget)
             w, v = np.linalg.eigh(corr)
             w = np.maximum(w, 1e-10 * w.max())
-            self._whiteners[key] = (v / np.sqrt(w)) @ v.T
-        return self._whiteners[key]
+            self._roots[key] = (v / np.sqrt(w)) @ v.T
+        return self._roots[key]
 
     def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray) -> np.ndarray:
         """(n_obs, n_cells, 3) residual -> standardised residual (NaN off the mask)."""
@@ -83,12 +83,10 @@ class NoiseModel:
     def sample(self, xy: np.ndarray, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
         """Noise fields (*shape, n_cells, 3) drawn from this model."""
         key = ("root", xy.tobytes())
-        if key not in self._whiteners:
+        if key not in self._roots:  # eigen-root: also valid for length 0 or nugget 1
             w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
-            self._whiteners[key] = v * np.sqrt(np.maximum(w, 0))
-        root = self._whiteners[key]
-        white = rng.standard_normal((*shape, 3, len(xy)))
-        return np.swapaxes(white @ root.T, -1, -2) * self.sd
+            self._roots[key] = v * np.sqrt(np.maximum(w, 0))
+        return noise_fields(self._roots[key], self.sd, shape, rng)
 
 
 def stack(values: np.ndarray, masks: np.ndarray) -> np.ndarray:
@@ -148,6 +146,11 @@ class Calibration:
     @property
     def free_names(self) -> list[str]:
         return [self.names[i] for i in self.free]
+
+    @property
+    def chi2(self) -> float:
+        """Sum of squares of the whitened residual."""
+        return float(np.nansum(self.whitened**2))
 
     @property
     def sd(self) -> np.ndarray:
@@ -377,8 +380,7 @@ def signatures(forward: ForwardModel, cal: Calibration, data: Data, effects: lis
 
 def excess_chi2(cal: Calibration, data: Data) -> float:
     """chi^2 of the residual above its expectation under noise alone (n - k)."""
-    r = stack(cal.whitened, data.masks)
-    return float(r @ r - (r.size - len(cal.free)))
+    return cal.chi2 - (data.n - len(cal.free))
 
 
 def score_candidates(cal: Calibration, data: Data, sigs: dict[str, np.ndarray]) -> list[CandidateScore]:
@@ -446,7 +448,7 @@ def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[
         excess, n = excess_chi2(cal, data), metrics["n_data"]
         for s in [s for s in scores if s.delta_bic > STRONG_EVIDENCE][:confirm]:
             fit = fits[s.effect] = extend(forward, cal, data, s.effect, **fit_kwargs)
-            drop = metrics["chi2"] - float(stack(fit.whitened, data.masks) @ stack(fit.whitened, data.masks))
+            drop = cal.chi2 - fit.chi2
             s.delta_bic = drop - s.dof * math.log(n)
             s.share_explained = float(np.clip((drop - s.dof) / excess, 0, 1)) if excess > 0 else 0.0
             s.estimate = {q: float(fit.x[forward.names.index(q)]) for q in s.parameters}

@@ -4,8 +4,9 @@ Noise fields are zero-mean Gaussian processes on the skin-cell centroids with an
 
     cov(x_i, x_j) = a_c^2 [(1 - w) exp(-|x_i - x_j|^2 / (2 l^2)) + w delta_ij],
 
-length scale l [mm], uncorrelated share w (the "nugget", 0 in the paper's study) and amplitude a_c = level x max |strain_c| over the training materials
-of the clean dataset, per component c. One Cholesky factor of the correlation matrix
+length scale l [mm], uncorrelated share w (the "nugget"; 0 in the paper's study) and
+amplitude a_c = level x max |strain_c| over the training materials of the clean dataset, per
+component c. One Cholesky factor of the correlation matrix
 (O(n_cells^3) once, ~1 s for the 4,624 cells of the paper mesh) serves every field; each
 field then costs one (n_cells x n_cells) triangular product, so all fields of a dataset are
 drawn in one matrix product per material.
@@ -39,11 +40,11 @@ def correlation_matrix(xy: np.ndarray, length: float, nugget: float = 0.0) -> np
     return corr
 
 
-def correlation_factor(xy: np.ndarray, length: float, jitter: float = 1e-8, nugget: float = 0.0) -> np.ndarray:
-    """Lower Cholesky factor (n, n) of :func:`correlation_matrix` (``jitter`` added on the diagonal)."""
+def correlation_factor(xy: np.ndarray, length: float, jitter: float = 1e-8) -> np.ndarray:
+    """Lower Cholesky factor (n, n) of the RBF correlation matrix of points xy (n, 2) [mm]."""
     if length <= 0:
         raise ValueError(f"noise length scale must be > 0 mm, got {length}")
-    corr = correlation_matrix(xy, length, nugget)
+    corr = correlation_matrix(xy, length)
     corr[np.diag_indices_from(corr)] += jitter
     return np.linalg.cholesky(corr)
 
@@ -61,7 +62,10 @@ def noise_amplitude(data: StrainDataset, level: float) -> np.ndarray:
 
 
 def noise_fields(factor: np.ndarray, amplitude: np.ndarray, shape: tuple[int, ...], rng) -> np.ndarray:
-    """Noise of shape (*shape, n_cells, 3): independent fields per leading index and component."""
+    """Noise of shape (*shape, n_cells, 3): independent fields per leading index and component.
+
+    ``factor`` is any square root L (L L^T = correlation) of the cells' correlation matrix.
+    """
     n = len(factor)
     white = rng.standard_normal((*shape, 3, n))
     correlated = white @ factor.T  # (..., 3, n): each row is L @ z

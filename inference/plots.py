@@ -15,7 +15,8 @@ LABELS = {
 }
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (figures are written to files)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -24,13 +25,21 @@ def _pyplot():
     return plt
 
 
+def save_figure(fig, path: Path | str, dpi: int = 110) -> Path:
+    """Lay out, write (PNG) and close a figure."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return Path(path)
+
+
 def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
     """Posterior pairs of the five skin parameters over the prior box (the paper's Fig. 7).
 
     Diagonal: posterior histogram against the uniform prior density (grey); off-diagonal:
     2-D histogram of the draws. The true value, when known, is drawn in red.
     """
-    plt = _pyplot()
+    plt = pyplot()
     names = list(LABELS)
     draws = samples.draws[..., :5].reshape(-1, 5)
     bounds = samples.bounds
@@ -64,15 +73,12 @@ def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
             ax.tick_params(labelsize=8)
     axes[0, 0].legend(fontsize=8, loc="upper right")
     fig.suptitle(title or "posterior (blue) against the uniform prior (grey); truth in red", fontsize=12)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title: str) -> Path:
     """True value vs posterior median with 95 % intervals, one panel per parameter (Fig. 9)."""
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     names = list(LABELS)
@@ -97,10 +103,7 @@ def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title:
         ax.tick_params(labelsize=8)
     axes[0].legend(fontsize=7, loc="upper left")
     fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def strain_maps(xy: np.ndarray, fields: list[np.ndarray], titles: list[str], path: Path | str,
@@ -112,26 +115,23 @@ def strain_maps(xy: np.ndarray, fields: list[np.ndarray], titles: list[str], pat
 
 def field_grid(xy: np.ndarray, rows: list[list[np.ndarray]], titles: list[list[str]], path: Path | str,
                membrane_half: float = 10.0, theta_deg: float | None = None, window: float = 20.0,
-               symmetric: bool = True, suptitle: str = "", label: str = "log strain [-]",
-               shared_rows: bool = False) -> Path:
+               symmetric: bool = True, suptitle: str = "") -> Path:
     """Cell-wise maps in a grid, membrane outline dashed, fiber direction arrowed.
 
     Args:
         xy: (n_cells, 2) centroids [mm]; rows: lists of (n_cells,) values (NaN = not observed).
         window: half-width of the shown region [mm].
         symmetric: diverging colour map centred on 0 (else sequential from the minimum).
-        shared_rows: one colour scale per row (e.g. measured and model side by side).
     """
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.tri import Triangulation
 
     tri = Triangulation(xy[:, 0], xy[:, 1])
     n_rows, n_cols = len(rows), max(len(r) for r in rows)
     fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.3 * n_cols, 3.9 * n_rows), squeeze=False)
     for r, (row, row_titles) in enumerate(zip(rows, titles)):
-        row_max = max(np.nanmax(np.abs(v)) for v in row)
         for ax, values, title in zip(axes[r], row, row_titles):
-            vmax = row_max if shared_rows else np.nanmax(np.abs(values))
+            vmax = np.nanmax(np.abs(values))
             shown = np.where(np.isfinite(values), values, 0.0)
             masked = ~np.all(np.isfinite(values[tri.triangles]), axis=1)
             tri.set_mask(masked)
@@ -152,12 +152,9 @@ def field_grid(xy: np.ndarray, rows: list[list[np.ndarray]], titles: list[list[s
             ax.set_xlabel("x [mm]")
             ax.set_ylabel("y [mm]")
             ax.set_title(title, fontsize=10)
-            fig.colorbar(im, ax=ax, label=label, shrink=0.85)
+            fig.colorbar(im, ax=ax, label="log strain [-]", shrink=0.85)
         for ax in axes[r, len(row):]:
             ax.axis("off")
     if suptitle:
         fig.suptitle(suptitle, fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)

@@ -14,7 +14,7 @@ import numpy as np
 
 from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, from_dataset
-from inference.plots import LABELS, accuracy_plot
+from inference.plots import LABELS, accuracy_plot, pyplot, save_figure
 from inference.sampling import sample_posterior, write_outputs
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
@@ -94,10 +94,7 @@ def test_set_study(
 
 def setups_plot(results: dict[str, dict], path: Path | str) -> Path:
     """Median 95 %-interval width (share of the prior range) per parameter and setup (Fig. 8)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = list(LABELS)
     fig, ax = plt.subplots(figsize=(8, 3.8))
@@ -111,10 +108,9 @@ def setups_plot(results: dict[str, dict], path: Path | str) -> Path:
     ax.set_ylim(0, 1.05)
     ax.legend(fontsize=8)
     ax.set_title("posterior width over the test materials (lower is better identified)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=120)
+
+
 test_set_study.__test__ = False  # not a pytest test
 
 
@@ -193,10 +189,7 @@ def noise_study(
 
 def explained_variance_plot(results: dict, path: Path) -> Path:
     """Cumulative explained variance per case and component (the paper's Fig. 4)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     comps = list(next(iter(results.values()))["explained_variance"])
@@ -213,20 +206,14 @@ def explained_variance_plot(results: dict, path: Path) -> Path:
         ax.set_ylim(0, 1.02)
         ax.grid(alpha=0.3)
     axes[0, -1].legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray, path: Path,
                      n: int = 41) -> Path:
     """First two PC weights of E_xx over (mu, k1), other parameters at the box centre, for two
     cases (the paper's Fig. 10: noise flattens the map, hence less identifiability)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     import torch
 
     from surrogate.emulator import model_inputs
@@ -247,10 +234,7 @@ def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray
             ax.set_xlabel("μ [kPa]")
             ax.set_ylabel("k₁ [kPa]")
             ax.set_title(f"{name}: E_xx PC{j + 1}", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def write_noise_report(results: dict, out: Path) -> Path:

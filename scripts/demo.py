@@ -32,11 +32,9 @@ def run(*args: str) -> None:
 def overview(out: Path, top: Path, bottom: list[Path]) -> Path:
     """One figure of the demo for the README: strain maps on top; where the model fails and the
     error falling below."""
-    import matplotlib
+    from inference.plots import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     top_image, images = plt.imread(top), [plt.imread(p) for p in bottom]
     ratios = [im.shape[1] / im.shape[0] for im in images]
     width = 16.0

@@ -100,9 +100,12 @@ class SkinModel:
         terms = self._model_terms(effects)
         F = ufl.Identity(3) + ufl.grad(self.u)
         G, F0 = terms.skin_map, terms.skin_prestretch
+        def skin_gradient(w):  # deformation gradient of displacement w in the mapped skin
+            return ufl.Identity(3) + ufl.grad(w) * ufl.inv(G)
+
         F_skin, F_elastic, weight = F, F, 1.0  # baseline: stress-free skin of mesh thickness
         if self.effects:
-            F_skin = ufl.Identity(3) + ufl.grad(self.u) * ufl.inv(G)
+            F_skin = skin_gradient(self.u)
             F_elastic, weight = F_skin * F0, ufl.det(G) / ufl.det(F0)
         skin_K = terms.skin_bulk_ratio * self.mu
         energy = weight * hgo_energy(
@@ -144,7 +147,7 @@ class SkinModel:
         self.u_ref = dolfinx.fem.Function(self.V, name="reference_displacement")
         F_seen = F
         if self.effects:
-            F_seen = F_skin * ufl.inv(ufl.Identity(3) + ufl.grad(self.u_ref) * ufl.inv(G))
+            F_seen = F_skin * ufl.inv(skin_gradient(self.u_ref))
         self.strain_sampler = SkinStrainSampler(self.u, cells, solver.quadrature_degree, F_seen)
         self.setup_seconds = time.perf_counter() - t0
 
