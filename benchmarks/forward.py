@@ -1,9 +1,14 @@
 """Forward-model benchmark: time per simulation, Newton iterations, memory, time breakdown,
 and a mesh/element convergence table.
 
-    python benchmarks/forward.py timing [--config paper] [--ranks 1 2]
+    python benchmarks/forward.py timing [--config paper] [--ranks 1 2] [--refactor-krylov 10 0]
     python benchmarks/forward.py convergence
     python benchmarks/forward.py run-one CONFIG OUT.json   # (internal, under mpirun)
+
+``--refactor-krylov`` values are timed one after another: the default (LU reused as GMRES
+preconditioner, refactorised when GMRES needs > 10 iterations per Newton step) and 0 (plain
+Newton with a factorisation at every step), recorded as ``timing_<config>_<n>rank`` and
+``timing_<config>_<n>rank_refactor0``.
 
 Results are merged into benchmarks/results/forward.json. Numbers are recorded, not asserted.
 """
@@ -40,8 +45,10 @@ def merge_results(key: str, value) -> None:
     RESULTS.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def run_one(config_source: str, out: str, mesh_dir: str) -> None:
+def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int) -> None:
     """One simulation on the ranks of COMM_WORLD; rank 0 writes timings to ``out``."""
+    import dataclasses
+
     from mpi4py import MPI
 
     from skinfem.config import load_config
@@ -51,6 +58,7 @@ def run_one(config_source: str, out: str, mesh_dir: str) -> None:
 
     comm = MPI.COMM_WORLD
     config = load_config(config_source)
+    config = dataclasses.replace(config, solver=dataclasses.replace(config.solver, refactor_krylov=refactor_krylov))
     t0 = time.perf_counter()
     model = SkinModel(config, comm, mesh_dir=mesh_dir)
     setup = time.perf_counter() - t0
@@ -66,6 +74,7 @@ def run_one(config_source: str, out: str, mesh_dir: str) -> None:
     breakdown = {k: comm.allreduce(v, op=MPI.MAX) for k, v in breakdown.items()}
     breakdown["strain_postprocessing"] = strain_seconds
     breakdown["setup_mesh_read_and_jit"] = setup
+    solves = comm.allreduce(PETSc.Log.Event("MatSolve").getPerfInfo()["count"], op=MPI.MAX)
     peak_mb = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, op=MPI.SUM)
     if comm.rank == 0:
         last = frames.strain[-1]
@@ -78,7 +87,9 @@ def run_one(config_source: str, out: str, mesh_dir: str) -> None:
                     "skin_cells": len(frames.xy),
                     "seconds_per_simulation": frames.seconds,
                     "newton_iterations_per_increment": frames.newton_iterations,
-                    "factorizations": int(sum(frames.newton_iterations)),
+                    "refactor_krylov": refactor_krylov,
+                    "factorizations": model.factorizations,
+                    "triangular_solves": solves,
                     "cutbacks": frames.cutbacks,
                     "peak_memory_mb_all_ranks": peak_mb,
                     "breakdown_seconds": breakdown,
@@ -89,18 +100,20 @@ def run_one(config_source: str, out: str, mesh_dir: str) -> None:
         )
 
 
-def timing(config: str, ranks: list[int], mesh_dir: str) -> None:
+def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[int]) -> None:
     mpirun = Path(sys.executable).with_name("mpirun")
-    for n in ranks:
-        out = Path(f"/tmp/skinid-forward-{config}-{n}.json")
-        cmd = [sys.executable, __file__, "run-one", config, str(out), "--mesh-dir", mesh_dir]
-        if n > 1:
-            cmd = [str(mpirun), "-n", str(n), *cmd]
-        env = {**os.environ, "OMP_NUM_THREADS": "1"}
-        subprocess.run(cmd, check=True, env=env)
-        result = json.loads(out.read_text())
-        print(json.dumps(result, indent=2))
-        merge_results(f"timing_{config}_{n}rank", result)
+    for k in refactor_krylov:
+        for n in ranks:
+            out = Path(f"/tmp/skinid-forward-{config}-{n}-{k}.json")
+            cmd = [sys.executable, __file__, "run-one", config, str(out), "--mesh-dir", mesh_dir,
+                   "--refactor-krylov", str(k)]
+            if n > 1:
+                cmd = [str(mpirun), "-n", str(n), *cmd]
+            env = {**os.environ, "OMP_NUM_THREADS": "1"}
+            subprocess.run(cmd, check=True, env=env)
+            result = json.loads(out.read_text())
+            print(json.dumps(result, indent=2))
+            merge_results(f"timing_{config}_{n}rank" + ("" if k else "_refactor0"), result)
 
 
 def coarse_average(fine_xy, fine_values, coarse_xy, coarse_edges):
@@ -182,11 +195,12 @@ def main() -> None:
     parser.add_argument("--config", default="paper")
     parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--mesh-dir", default="meshes")
+    parser.add_argument("--refactor-krylov", type=int, nargs="+", default=[10, 0])
     a = parser.parse_args()
     if a.part == "run-one":
-        run_one(a.args[0], a.args[1], a.mesh_dir)
+        run_one(a.args[0], a.args[1], a.mesh_dir, a.refactor_krylov[0])
     elif a.part == "timing":
-        timing(a.config, a.ranks, a.mesh_dir)
+        timing(a.config, a.ranks, a.mesh_dir, a.refactor_krylov)
     else:
         convergence(a.mesh_dir)
 

@@ -76,7 +76,8 @@ class FusedLogDensity:
         grad = np.zeros_like(u)
         dz = z * (1 - z)
         grad[:5] = dx[:5] * self.span / self.in_span[:5] * dz + (1 - 2 * z)
-        value = loglik - np.sum(np.log(self.span)) + np.sum(np.log(self.span) + np.log(z) + np.log1p(-z))
+        # uniform prior -sum log span + Jacobian sum log(span z (1 - z)): the spans cancel
+        value = loglik - np.sum(np.logaddexp(0, -u[:5]) + np.logaddexp(0, u[:5]))
         if self.halfcauchy:
             s = self.noise_scale
             value += np.sum(np.log(2 / (np.pi * s)) - np.log1p((sigma / s) ** 2)) + np.sum(u[5:])

@@ -173,8 +173,8 @@ class SkinPosterior:
         """Log posterior density of the unconstrained vector u (dim,), Jacobian included."""
         values = self.constrain(u)
         params, sigma = values[:5], values[5:]
-        z = torch.sigmoid(u[:5])
-        log_jac = torch.sum(torch.log(self.span) + torch.log(z) + torch.log1p(-z)) + torch.sum(u[5:])
+        log_z = torch.nn.functional.logsigmoid(u[:5]) + torch.nn.functional.logsigmoid(-u[:5])  # log z(1-z)
+        log_jac = torch.sum(torch.log(self.span) + log_z) + torch.sum(u[5:])
         log_prior = -torch.sum(torch.log(self.span))
         if len(sigma):
             log_prior = log_prior + torch.sum(

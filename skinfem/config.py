@@ -146,6 +146,12 @@ class SolverConfig:
     ``rtol`` times the residual at the increment's predictor. The residual is dominated by
     the stiff membrane and has a round-off floor near 1e-11 N, so ``atol`` must stay above
     it; 1e-10 N is ~1e-5 of a skin nodal force on the paper mesh.
+
+    Linear solves: the MUMPS LU factorisation of the tangent is reused as the preconditioner
+    of GMRES (relative tolerance ``krylov_rtol``) across Newton iterations and increments, and
+    refactorised at the next increment once an increment needed more than
+    ``refactor_krylov`` GMRES iterations per Newton step (and before retrying a failed
+    increment). ``refactor_krylov = 0`` factorises at every Newton step (plain Newton-LU).
     """
 
     element_degree: int = 1
@@ -155,6 +161,8 @@ class SolverConfig:
     max_iterations: int = 25
     rtol: float = 1e-10
     atol: float = 1e-10
+    refactor_krylov: int = 10
+    krylov_rtol: float = 1e-8
 
     def validate(self, prefix: str = "solver") -> None:
         _check(self.element_degree in (1, 2), f"{prefix}.element_degree", "must be 1 or 2")
@@ -164,6 +172,8 @@ class SolverConfig:
         _check(self.max_iterations >= 1, f"{prefix}.max_iterations", "must be >= 1")
         _check(0 < self.rtol < 1, f"{prefix}.rtol", "must be in (0, 1)")
         _check(self.atol >= 0, f"{prefix}.atol", "must be >= 0")
+        _check(self.refactor_krylov >= 0, f"{prefix}.refactor_krylov", "must be >= 0")
+        _check(0 < self.krylov_rtol < 1, f"{prefix}.krylov_rtol", "must be in (0, 1)")
 
 
 def _default_bounds() -> dict[str, list[float]]:

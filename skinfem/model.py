@@ -10,10 +10,13 @@ Formulation (see README "Forward model"):
 - total energy  int_skin Psi_HGO + int_muscle Psi_NH + int_membrane Psi_mem  with
   residual and Jacobian from ``ufl.derivative``;
 - bottom clamped, lateral faces on rollers, top free except the membrane;
-- Newton (PETSc SNES, full steps) with MUMPS LU; the initial guess of each increment is
-  extrapolated linearly from the two previous converged states; an increment that fails is
-  halved (cut-back) up to ``solver.max_cutbacks`` times, frames are still reported at the
-  requested t.
+- Newton (PETSc SNES, full steps); each linear step is GMRES preconditioned by a MUMPS LU
+  factorisation of an earlier tangent, refactorised only when GMRES needs more than
+  ``solver.refactor_krylov`` iterations per Newton step (factorisation costs ~50 triangular
+  solves on the paper mesh); the initial guess of each increment is extrapolated linearly
+  from the two previous converged states; an increment that fails is retried once with a
+  fresh factorisation, then halved (cut-back) up to ``solver.max_cutbacks`` times; frames
+  are still reported at the requested t.
 """
 
 from __future__ import annotations
@@ -136,11 +139,12 @@ class SkinModel:
                 "snes_atol": solver.atol,
                 "snes_stol": 1e-9,
                 "snes_max_it": solver.max_iterations,
-                "ksp_type": "preonly",
                 "pc_type": "lu",
                 "pc_factor_mat_solver_type": "mumps",
+                **(self._krylov_options(solver.krylov_rtol) if solver.refactor_krylov else {"ksp_type": "preonly"}),
             },
         )
+        self.factorizations = 0  # of the current simulation
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
         cells = top_skin_cells(mesh, self.cell_tags, TAGS["skin"], depth)
         # strain is measured from the unloaded equilibrium u_ref (zero unless pre-stressed)
@@ -234,14 +238,31 @@ class SkinModel:
         self.a0.value[:] = (np.cos(th), np.sin(th), 0.0)
 
     # -- solving ---------------------------------------------------------------------------
-    def _newton(self) -> tuple[bool, int]:
+    @staticmethod
+    def _krylov_options(rtol: float) -> dict:
+        """GMRES on the exact tangent, preconditioned by a factorization kept across solves."""
+        return {"ksp_type": "gmres", "ksp_rtol": rtol, "ksp_gmres_restart": 100, "ksp_max_it": 100,
+                "snes_lag_preconditioner_persists": True}
+
+    def _newton(self, refactor: bool) -> tuple[bool, int, float]:
+        """One SNES solve; ``refactor`` factorises the tangent at its first iteration, else the
+        last factorisation preconditions GMRES. Returns (converged, Newton iterations, GMRES
+        iterations per Newton step)."""
         snes = self.problem.solver
+        reuse = self.config.solver.refactor_krylov > 0
+        if reuse and refactor:  # lag -2: rebuild at the next Jacobian, then never until told again
+            key = f"{self._prefix}snes_lag_preconditioner"
+            options = PETSc.Options()
+            options[key] = -2
+            snes.setFromOptions()
+            del options[key]
         self.problem.solve()
         reason = snes.getConvergedReason()
         its = snes.getIterationNumber()
+        self.factorizations += (1 if refactor else 0) if reuse else its
         ok = reason > 0 and np.all(np.isfinite(self.u.x.array))
         ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
-        return ok, its
+        return ok, its, snes.getLinearSolveIterations() / max(its, 1)
 
     def load_fractions(self) -> np.ndarray:
         n = self.config.solver.increments
@@ -263,12 +284,14 @@ class SkinModel:
         """
         start = time.perf_counter()
         self.set_params(params)
+        self.factorizations = 0
+        refactor_krylov = self.config.solver.refactor_krylov
         x = self.u.x.array
         x[:] = 0.0
         self.u_ref.x.array[:] = 0.0
         if self.prestressed:
             self._set_load(0.0, design)
-            converged, _ = self._newton()
+            converged, _, _ = self._newton(refactor=True)
             if not converged:
                 raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
             self.u_ref.x.array[:] = x
@@ -277,6 +300,7 @@ class SkinModel:
         t, step = 0.0, base_step
         history: tuple[float, np.ndarray] | None = None  # (t, u) of the previous state
         frames, iterations, cutbacks = [], [], 0
+        refactor = True  # new parameters: a fresh factorisation
         for target in targets:
             while t < target - 1e-12:
                 step = min(step, target - t)
@@ -286,14 +310,18 @@ class SkinModel:
                     t_old, x_old = history
                     x += (t_new - t) / (t - t_old) * (saved - x_old)
                 self._set_load(t_new, design)
-                converged, its = self._newton()
+                converged, its, krylov = self._newton(refactor)
                 if converged:
                     history = (t, saved)
                     t = t_new
                     iterations.append(its)
                     step = min(2 * step, base_step)
+                    refactor = krylov > refactor_krylov
                     continue
                 x[:] = saved
+                if not refactor:  # the stale factorisation may be to blame: retry with a fresh one
+                    refactor = True
+                    continue
                 cutbacks += 1
                 step /= 2
                 if cutbacks > self.config.solver.max_cutbacks:

@@ -17,7 +17,7 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
-from inference.sampling import sample_posterior
+from inference.sampling import _nuts_kernel, laplace_inverse_mass, sample_posterior
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
 from tests.cli_helpers import skinid
@@ -118,6 +118,41 @@ def test_sampler_matches_an_exact_linear_gaussian_posterior():
     summary = samples.summary()
     assert summary["divergences"] == 0
     assert all(e["r_hat"] < 1.01 for e in summary["parameters"].values())
+
+
+class GaussianDensity:
+    """Stand-in posterior: log density -0.5 (u - m)' P (u - m) (+ a saddle when indefinite)."""
+
+    def __init__(self, precision):
+        self.precision = torch.as_tensor(precision)
+        self.mean = torch.linspace(-1, 1, len(precision), dtype=torch.float64)
+
+    def log_density(self, u):
+        r = u - self.mean
+        return -0.5 * r @ self.precision @ r
+
+    def potential(self, sites):
+        return -self.log_density(sites["u"])
+
+
+def test_laplace_metric_is_the_gaussian_covariance_and_starts_the_warm_up():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(4, 4))
+    precision = q @ q.T + 0.5 * np.eye(4)
+    density = GaussianDensity(precision)
+    inverse_mass = laplace_inverse_mass(density, np.zeros(4))
+    np.testing.assert_allclose(inverse_mass, np.linalg.inv(precision), rtol=1e-10, atol=1e-12)
+    # an indefinite Hessian (a saddle) is floored to a positive-definite, bounded metric
+    saddle = laplace_inverse_mass(GaussianDensity(np.diag([4.0, -1.0, 1e-8, 2.0])), np.zeros(4), floor=1e-2)
+    np.testing.assert_allclose(np.diag(saddle), [0.25, 100.0, 100.0, 0.5])
+    # Pyro's adapter holds it once the kernel is set up
+    kernel = _nuts_kernel(density, inverse_mass)
+    kernel.initial_params = {"u": torch.zeros(4, dtype=torch.float64)}
+    kernel.setup(warmup_steps=500)
+    np.testing.assert_allclose(kernel.inverse_mass_matrix[("u",)].numpy(), inverse_mass, rtol=1e-10)
+    # and adapts it in windows of 100 then 275 steps between the 75- and 50-step buffers
+    windows = [(w.start, w.end) for w in kernel._adapter.adaptation_schedule]
+    assert windows == [(0, 74), (75, 174), (175, 449), (450, 499)]
 
 
 def test_held_out_material_is_identified(emulator, data, tmp_path):
