@@ -178,7 +178,7 @@ class SkinPosterior:
         log_prior = -torch.sum(torch.log(self.span))
         if len(sigma):
             log_prior = log_prior + torch.sum(
-                dist.HalfCauchy(torch.tensor(self.noise_scale, dtype=u.dtype)).log_prob(sigma)
+                dist.HalfCauchy(torch.tensor(self.noise_scale, dtype=u.dtype), validate_args=False).log_prob(sigma)
             )
         return self.log_likelihood(params, sigma) + log_prior + log_jac
 

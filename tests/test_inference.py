@@ -51,6 +51,14 @@ def test_potential_equals_pyro_models_potential(emulator, data, gp_variance):
         assert float(post.potential({"u": u})) == pytest.approx(expected, rel=1e-10, abs=1e-8)
 
 
+def test_density_of_a_non_finite_point_is_non_finite_not_an_error(emulator, data):
+    """L-BFGS line searches can step to overflow; the mode search then discards that start."""
+    obs = from_dataset(data, 0, designs=[0], frames=[-1])
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs))
+    u = torch.full((post.dim,), float("nan"), dtype=torch.float64)
+    assert not torch.isfinite(post.log_density(u))
+
+
 def test_closed_form_density_equals_autograd(emulator, data):
     from inference.density import FusedLogDensity
 
