@@ -3,6 +3,12 @@
 The PyPI wheel ``dolfinx-solver-real`` ships PETSc/MPICH libraries that must be loaded by
 ``import dolfinx_solver`` before ``dolfinx`` or ``petsc4py``. A conda-forge or apt DOLFINx
 has no such module, and then the import is simply skipped.
+
+PETSc's default ``VecMDot`` (BLAS ``gemv`` over GMRES's Krylov basis) sums in an order that
+depends on where the vectors land in memory, so GMRES results — and with them Newton
+iteration counts near the tolerance — changed from run to run in the last bits. The unrolled
+kernels are deterministic; they are selected here (unless the user set the options) before
+any vector exists, because PETSc reads them when a vector is created.
 """
 
 from __future__ import annotations
@@ -25,5 +31,10 @@ except ImportError as exc:  # pragma: no cover - depends on the install
         "skinfem needs DOLFINx 0.11 (FEniCSx). Install it with `pip install dolfinx-solver-real` "
         "or from conda-forge (`conda install -c conda-forge fenics-dolfinx`); see README 'Install'."
     ) from exc
+
+_options = PETSc.Options()
+for _name in ("vec_mdot_use_gemv", "vec_maxpy_use_gemv"):
+    if not _options.hasName(_name):
+        _options[_name] = False
 
 __all__ = ["dolfinx", "ufl", "PETSc"]

@@ -52,6 +52,21 @@ def test_reused_factorization_gives_the_newton_lu_fields(small_model, small_conf
     assert 1 <= factorizations < sum(reused.newton_iterations) / 2
 
 
+def test_a_simulation_does_not_depend_on_the_one_before(small_model, small_config, mesh_dir):
+    """The reused factorization and GMRES are reset per simulation: a model that solved another
+    material first returns the same bits as a fresh one (datasets are reproducible across
+    shards and resumed runs)."""
+    config = small_config.with_changes(solver={"increments": 3})
+    other = SkinParams(mu=2e-3, k1=0.022, k2=15.0, kappa=0.27, theta=80.0)
+    design = Design(-0.05, 0.05)
+    used = SkinModel(config, mesh_dir=mesh_dir)
+    used.simulate(other, Design(0.05, -0.05))
+    after = used.simulate(PARAMS, design)
+    fresh = SkinModel(config, mesh_dir=mesh_dir).simulate(PARAMS, design)
+    assert after.newton_iterations == fresh.newton_iterations
+    np.testing.assert_array_equal(after.strain, fresh.strain)
+
+
 def test_membrane_reaches_its_eigenstrain(small_model):
     """The stiff membrane's own strain at its centre is ln(1 + alpha) within 0.5 %."""
     from skinfem.mesh import TAGS
