@@ -7,7 +7,7 @@ from mpi4py import MPI
 from skinfem.fenics import dolfinx, ufl
 from skinfem.config import MembraneConfig
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy
-from skinfem.model import SkinModel
+from skinfem.model import SkinModel, extrapolate
 from skinfem.params import Design, SkinParams
 from tests.helpers import at_point, component_bc, solve_energy
 
@@ -50,6 +50,17 @@ def test_reused_factorization_gives_the_newton_lu_fields(small_model, small_conf
     assert reused.newton_iterations == plain.newton_iterations
     assert plain_model.factorizations == sum(plain.newton_iterations)
     assert 1 <= factorizations < sum(reused.newton_iterations) / 2
+
+
+def test_predictor_is_exact_for_polynomial_load_paths():
+    """The increment predictor reproduces a quadratic path from three states (unequal steps,
+    as after a cut-back) and a linear one from two; one state is kept as is."""
+    a, b, c = np.array([1.0, -2.0]), np.array([0.5, 3.0]), np.array([-4.0, 0.25])
+    path = lambda t: a + b * t + c * t**2  # noqa: E731
+    np.testing.assert_allclose(extrapolate(0.45, [(t, path(t)) for t in (0.4, 0.3, 0.1)]), path(0.45), rtol=1e-13)
+    line = lambda t: a + b * t  # noqa: E731
+    np.testing.assert_allclose(extrapolate(0.2, [(0.1, line(0.1)), (0.0, line(0.0))]), line(0.2), rtol=1e-13)
+    np.testing.assert_array_equal(extrapolate(0.1, [(0.0, a)]), a)
 
 
 def test_a_simulation_does_not_depend_on_the_one_before(small_model, small_config, mesh_dir):
