@@ -51,7 +51,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     if prog.endswith("check"):
         parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
         parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
-        parser.add_argument("--out", type=Path, required=True, help="report directory")
+        parser.add_argument("--out", type=Path, required=True, help="report directory (its fe_runs/ keeps finished FE runs: rerunning resumes)")
         parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
                             help="measurement noise sd per component [strain] (default: the files' sd columns)")
         parser.add_argument("--noise-length", type=float, default=0.0,
@@ -202,7 +202,7 @@ def cmd_check(args) -> None:
         raise ValueError("the measurements have no sd_exx, sd_eyy, sd_exy columns: give --noise-sd XX YY XY")
     noise = NoiseModel(sd, args.noise_length, args.noise_nugget)
     comm = MPI.COMM_WORLD
-    result = run_check(emulator, obs, noise, settings, args.mesh_dir, comm)
+    result = run_check(emulator, obs, noise, settings, args.mesh_dir, comm, cache_dir=Path(args.out) / "fe_runs")
     if comm.rank == 0:
         path = write_report(result, args.out)
         print(result.diagnosis.text)

@@ -119,12 +119,16 @@ def subspace_share(emulator: Emulator, data: Data) -> dict:
 
 
 def run_check(emulator: Emulator, observations: list[Observation], noise: NoiseModel, settings: CheckSettings,
-              mesh_dir: Path | str = "meshes", comm: MPI.Comm = MPI.COMM_WORLD) -> CheckResult:
-    """Calibrate the baseline, diagnose it, add ``settings.add`` effects; see module doc."""
+              mesh_dir: Path | str = "meshes", comm: MPI.Comm = MPI.COMM_WORLD,
+              cache_dir: Path | str | None = None) -> CheckResult:
+    """Calibrate the baseline, diagnose it, add ``settings.add`` effects; see module doc.
+
+    ``cache_dir`` keeps every finished FE simulation on disk; a rerun of the same check
+    (e.g. after a kill) reads them instead of simulating again."""
     timings = {}
     t0 = time.perf_counter()
     config = config_from_toml(emulator.meta["dataset_config"])
-    forward = FEForward(config, observations, emulator.param_bounds, mesh_dir, settings.increments, comm)
+    forward = FEForward(config, observations, emulator.param_bounds, mesh_dir, settings.increments, comm, cache_dir)
     if forward.xy.shape != emulator.xy.shape or not np.allclose(forward.xy, emulator.xy, atol=1e-6):
         raise ValueError("the FE model's skin cells differ from the emulator's (mesh changed since the fit?)")
     data = Data.from_observations(observations, emulator.xy, noise)
@@ -155,6 +159,7 @@ def run_check(emulator: Emulator, observations: list[Observation], noise: NoiseM
         versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
     timings["add_s"], timings["add_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
     timings["add_reused_from_diagnose_s"], timings["add_reused_from_diagnose_fe_runs"] = reused_s, reused_runs
+    timings["fe_runs_read_from_cache"] = forward.reused
 
     predicted = np.stack([emulator.predict_fields(baseline.x[None, :5], o.alpha, o.t)[0] for o in observations])
     modelled = [COMPONENTS.index(c) for c in emulator.components]

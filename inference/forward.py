@@ -8,7 +8,9 @@ observation, (n_obs, n_cells, 3). Two implementations share this interface:
   every candidate effect of :mod:`skinfem.effects` (at their null values it *is* the
   baseline). It runs one simulation per distinct membrane design and picks the observed load
   fractions. ``evaluate_many`` spreads independent parameter points over MPI ranks (each rank
-  owns a serial model); results are cached by parameter vector.
+  owns a serial model); results are cached by parameter vector, in memory and, with
+  ``cache_dir``, on disk (one ``.npy`` per point, written atomically as soon as it is
+  computed), so a killed check resumes without repeating finished simulations.
 - :class:`TaylorForward`: the first-order Taylor expansion of another forward model about a
   point (exact for linear effects, microseconds per call): the fast emulator the false-alarm
   study runs thousands of criticism passes on.
@@ -16,6 +18,8 @@ observation, (n_obs, n_cells, 3). Two implementations share this interface:
 
 from __future__ import annotations
 
+import hashlib
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -74,6 +78,9 @@ class FEForward(ForwardModel):
             observed t must be a multiple of 1/increments. Equilibrium does not depend on the
             path, so fewer increments give the same fields faster.
         comm: ranks to spread parameter points over; each rank runs its own serial model.
+        cache_dir: folder of finished simulations to reuse and extend (None: memory only).
+            Entries are keyed by the configuration, the designs and frames and the
+            parameter vector, so a changed setup never reads stale fields.
 
     Raises:
         ValueError: an observed load fraction is not on the increment grid.
@@ -81,7 +88,7 @@ class FEForward(ForwardModel):
 
     def __init__(self, config: Config, observations: list[Observation], skin_bounds: np.ndarray,
                  mesh_dir: Path | str = "meshes", increments: int | None = None,
-                 comm: MPI.Comm = MPI.COMM_WORLD):
+                 comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None):
         from skinfem.model import SkinModel
 
         if increments is not None:
@@ -103,6 +110,10 @@ class FEForward(ForwardModel):
             self.picks.append((designs.index(tuple(np.round(o.alpha, 12))), k))
         self.xy = self.model.strain_sampler.xy
         self._cache: dict[bytes, np.ndarray] = {}
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        setup = f"{config.to_toml()}\n{self.names}\n{designs}\n{self.picks}\n{self.xy.tobytes().hex()}"
+        self._setup_hash = hashlib.sha256(setup.encode()).hexdigest()
+        self.reused = 0  # simulations read from cache_dir instead of run
         self.seconds = 0.0
 
     def _simulate(self, x: np.ndarray) -> np.ndarray:
@@ -113,11 +124,43 @@ class FEForward(ForwardModel):
         frames = [self.model.simulate(params, Design(*d)).strain for d in self.designs]
         return np.stack([frames[j][k] for j, k in self.picks])
 
+    def _cache_file(self, key: bytes) -> Path:
+        return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}.npy"
+
+    def _from_disk(self, keys: list[bytes]) -> dict[bytes, np.ndarray]:
+        """Cached fields of ``keys`` (read on rank 0, shared with all)."""
+        found = {}
+        if self.cache_dir is not None and self.comm.rank == 0:
+            for key in keys:
+                path = self._cache_file(key)
+                if path.exists():
+                    found[key] = np.load(path)
+        return self.comm.bcast(found)
+
+    def _to_disk(self, key: bytes, fields: np.ndarray) -> None:
+        if self.cache_dir is None:
+            return
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        path = self._cache_file(key)
+        partial = path.with_suffix(f".{os.getpid()}.part")
+        with open(partial, "wb") as f:
+            np.save(f, fields)
+        partial.replace(path)  # atomic: a kill leaves either no entry or a whole one
+
+    def _simulate_and_store(self, key: bytes) -> np.ndarray:
+        fields = self._simulate(np.frombuffer(key))
+        self._to_disk(key, fields)
+        return fields
+
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray]:
         points = [np.asarray(x, dtype=float) for x in points]
         todo = [x for x in dict.fromkeys(x.tobytes() for x in points) if x not in self._cache]
+        stored = self._from_disk(todo)
+        self._cache.update(stored)
+        self.reused += len(stored) * len(self.designs)
+        todo = [x for x in todo if x not in stored]
         start = time.perf_counter()
-        mine = {key: self._simulate(np.frombuffer(key)) for key in todo[self.comm.rank::self.comm.size]}
+        mine = {key: self._simulate_and_store(key) for key in todo[self.comm.rank::self.comm.size]}
         for part in self.comm.allgather(mine):
             self._cache.update(part)
         self.runs += len(todo) * len(self.designs)

@@ -172,6 +172,45 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
         assert (tmp_path / "report" / png).stat().st_size > 10_000
     assert "Most likely missing: pre_stretch" in res.stdout
 
+    # a rerun (as after a kill) reads every FE run from report/fe_runs and reaches the same result
+    res = skinid("check", "--emulator", small_emulator, "--measurement", *files, "--out", tmp_path / "report",
+                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--add", "pre_stretch", "--increments", 2,
+                 "--confirm", 1, "--mesh-dir", mesh_dir, ranks=2)
+    assert res.returncode == 0, res.stderr[-3000:]
+    again = json.loads((tmp_path / "report" / "report.json").read_text())
+    t = again["timings"]
+    assert t["compare_fe_runs"] == t["diagnose_fe_runs"] == t["add_fe_runs"] == 0
+    assert t["fe_runs_read_from_cache"] == sum(report["timings"][k] for k in ("compare_fe_runs", "diagnose_fe_runs",
+                                                                              "add_fe_runs"))
+    for v_again, v in zip(again["versions"], report["versions"], strict=True):
+        assert v_again["metrics"] == v["metrics"] and v_again["estimates"] == v["estimates"]
+    assert again["candidates"] == report["candidates"]
+
+
+def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
+    """FEForward's disk cache: a new instance reads finished points without simulating; another
+    setup (increments) does not see them; no partial files are left."""
+    from inference.forward import FEForward
+    from inference.observations import Observation
+
+    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    obs = [Observation(alpha=np.array([0.05, -0.05]), t=1.0, fields=None, mask=None)]
+    first = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, cache_dir=tmp_path)
+    points = [first.null, first.null + 0.1 * np.ptp(first.bounds, axis=1)]
+    fields = first.evaluate_many(points)
+    assert first.runs == 2 and first.reused == 0
+    assert len(list(tmp_path.glob("*.npy"))) == 2 and not list(tmp_path.glob("*.part"))
+
+    again = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, cache_dir=tmp_path)
+    again._simulate = lambda x: pytest.fail("a cached point was simulated again")
+    for a, b in zip(again.evaluate_many(points), fields):
+        np.testing.assert_array_equal(a, b)
+    assert again.runs == 0 and again.reused == 2
+
+    other = FEForward(small_config, obs, bounds, mesh_dir, increments=1, comm=MPI.COMM_SELF, cache_dir=tmp_path)
+    other.evaluate_many(points[:1])
+    assert other.runs == 1 and other.reused == 0
+
 
 def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emulator, tmp_path):
     from inference.observations import write_measurement
