@@ -78,6 +78,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, required=True)
     p.add_argument("--design", type=int, required=True, help="the single design")
     p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
+    p.add_argument("--others", help="the multi-membrane setup's other designs, e.g. '0,13' "
+                                    "(default: the n - 1 designs farthest apart in alpha)")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     p.add_argument("--out", type=Path, required=True)
     _add_sampler(p)
@@ -131,7 +133,7 @@ def cmd_infer(args) -> None:
 
 
 def cmd_study(args) -> None:
-    from inference.studies import setups_plot, test_set_study
+    from inference.studies import setups_plot, spread_designs, test_set_study
     from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
 
@@ -151,12 +153,11 @@ def cmd_study(args) -> None:
         print(json.dumps(res, indent=2))
         print(f"wrote {args.out}/study.json and accuracy.png")
         return
-    n_des = len(data.designs)
-    others = [j for j in range(n_des) if j != args.design][: args.n - 1]
+    others = _ints(args.others) if args.others else spread_designs(data.designs, args.design, args.n)[1:]
     setups = {
         "single": ([args.design], [-1]),
         f"{args.n} frames": ([args.design], list(range(-args.n, 0))),
-        f"{args.n} membranes": ([args.design, *others], [-1]),
+        f"{1 + len(others)} membranes": ([args.design, *others], [-1]),
     }
     results = {
         label: test_set_study(emulator, data, d, f, settings_of(args), args.out / label.replace(" ", "_"),

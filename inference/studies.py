@@ -92,6 +92,25 @@ def test_set_study(
     return result
 
 
+def spread_designs(designs: np.ndarray, first: int, n: int) -> list[int]:
+    """``first`` and n - 1 more design indices, each the farthest (in alpha) from those chosen.
+
+    Greedy max-min selection over the (n_des, 2) eigen-strains: the extra membranes of a
+    multi-membrane setup load the skin as differently as the dataset allows. Ties go to the
+    design with the larger alpha11 + alpha22: stretching engages the fibers, which carry no
+    load in compression.
+    """
+    designs = np.asarray(designs, dtype=float)
+    if not 1 <= n <= len(designs):
+        raise ValueError(f"need 1 <= n <= {len(designs)} designs, got n = {n}")
+    chosen = [first]
+    while len(chosen) < n:
+        gap = np.min(np.linalg.norm(designs[:, None, :] - designs[None, chosen, :], axis=-1), axis=1)
+        ties = np.flatnonzero(gap >= gap.max() - 1e-12)
+        chosen.append(int(ties[np.argmax(designs[ties].sum(axis=1))]))
+    return chosen
+
+
 def setups_plot(results: dict[str, dict], path: Path | str) -> Path:
     """Median 95 %-interval width (share of the prior range) per parameter and setup (Fig. 8)."""
     plt = pyplot()

@@ -25,6 +25,7 @@ import numpy as np
 from inference.observations import from_dataset
 from inference.plots import corner_plot
 from inference.sampling import sample_posterior
+from inference.studies import spread_designs
 from inference.model import ObservedWeights, SkinPosterior
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
@@ -35,7 +36,7 @@ out = Path(os.environ.get("SKINID_NOTEBOOK_OUT", "../out/notebooks")) / "03"
 out.mkdir(parents=True, exist_ok=True)
 material = int(np.flatnonzero(data.split)[0])
 mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
-others = [j for j in range(len(data.designs)) if j != mixed][:2]
+others = spread_designs(data.designs, mixed, 3)[1:]  # the two designs farthest from it and each other
 print("material", material, "true", dict(zip(("mu", "k1", "k2", "kappa", "theta"), data.params[material])))
 
 # %%

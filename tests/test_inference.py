@@ -18,6 +18,7 @@ from inference.observations import (
     write_measurement,
 )
 from inference.sampling import _nuts_kernel, laplace_inverse_mass, sample_posterior
+from inference.studies import spread_designs
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
 from tests.cli_helpers import skinid
@@ -262,3 +263,16 @@ def test_cli_infer_from_measurement(emulator, data, tmp_path, small_emulator):
     res = skinid("infer", "--emulator", small_emulator, "--measurement", bad, "--out", tmp_path / "p2")
     assert res.returncode == 2 and "column(s) exy missing" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_multi_membrane_designs_are_spread_over_the_alpha_grid():
+    """On the paper's 14 designs the mixed membrane (0.05, -0.05) is joined by its mirror
+    (-0.05, 0.05) and, of the two equidistant corners, the biaxial stretch (0.05, 0.05)."""
+    a22 = [-0.05 + 0.1 * i / 6 for i in range(7)]
+    designs = np.array([[a11, a] for a11 in (-0.05, 0.05) for a in a22])
+    chosen = spread_designs(designs, 7, 3)
+    np.testing.assert_allclose(designs[chosen], [[0.05, -0.05], [-0.05, 0.05], [0.05, 0.05]], atol=1e-12)
+    assert spread_designs(designs, 3, 1) == [3]
+    assert len(set(spread_designs(designs, 0, 14))) == 14
+    with pytest.raises(ValueError, match="designs"):
+        spread_designs(designs, 0, 15)
