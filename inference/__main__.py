@@ -154,6 +154,9 @@ def cmd_study(args) -> None:
         print(f"wrote {args.out}/study.json and accuracy.png")
         return
     others = _ints(args.others) if args.others else spread_designs(data.designs, args.design, args.n)[1:]
+    bad = [j for j in [args.design, *others] if not 0 <= j < len(data.designs)]
+    if bad:  # before the single and multi-frame studies run, not after
+        raise ValueError(f"design {bad[0]} is not in [0, {len(data.designs)}) of {args.data}")
     setups = {
         "single": ([args.design], [-1]),
         f"{args.n} frames": ([args.design], list(range(-args.n, 0))),

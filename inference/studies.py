@@ -101,6 +101,8 @@ def spread_designs(designs: np.ndarray, first: int, n: int) -> list[int]:
     load in compression.
     """
     designs = np.asarray(designs, dtype=float)
+    if not 0 <= first < len(designs):
+        raise ValueError(f"design {first} is not in [0, {len(designs)})")
     if not 1 <= n <= len(designs):
         raise ValueError(f"need 1 <= n <= {len(designs)} designs, got n = {n}")
     chosen = [first]

@@ -96,15 +96,20 @@ def test_score_statistic_equals_the_fitted_chi2_drop_for_a_linear_model(linear_w
     assert max(scores, key=lambda k: scores[k].statistic) == "bonding"
 
 
-@pytest.fixture(scope="module")
-def taylor_at_truth(small_config, mesh_dir):
-    """First-order expansion of the FE model (all effects) about the truth: one design."""
+def mixed_design_fe(config, mesh_dir, increments=2, cache_dir=None):
+    """The serial FE forward model (all effects) predicting the last frame of the mixed design."""
     from inference.forward import FEForward
     from inference.observations import Observation
 
-    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    bounds = np.array([config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
     obs = [Observation(alpha=np.array([0.05, -0.05]), t=1.0, fields=None, mask=None)]
-    fe = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF)
+    return FEForward(config, obs, bounds, mesh_dir, increments=increments, comm=MPI.COMM_SELF, cache_dir=cache_dir)
+
+
+@pytest.fixture(scope="module")
+def taylor_at_truth(small_config, mesh_dir):
+    """First-order expansion of the FE model (all effects) about the truth: one design."""
+    fe = mixed_design_fe(small_config, mesh_dir)
     x0 = fe.null.copy()
     x0[:5] = TRUTH.as_array()
     return TaylorForward(fe, x0), fe.xy
@@ -190,24 +195,19 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
 def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
     """FEForward's disk cache: a new instance reads finished points without simulating; another
     setup (increments) does not see them; no partial files are left."""
-    from inference.forward import FEForward
-    from inference.observations import Observation
-
-    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
-    obs = [Observation(alpha=np.array([0.05, -0.05]), t=1.0, fields=None, mask=None)]
-    first = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, cache_dir=tmp_path)
+    first = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
     points = [first.null, first.null + 0.1 * np.ptp(first.bounds, axis=1)]
     fields = first.evaluate_many(points)
     assert first.runs == 2 and first.reused == 0
     assert len(list(tmp_path.glob("*.npy"))) == 2 and not list(tmp_path.glob("*.part"))
 
-    again = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, cache_dir=tmp_path)
+    again = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
     again._simulate = lambda x: pytest.fail("a cached point was simulated again")
     for a, b in zip(again.evaluate_many(points), fields):
         np.testing.assert_array_equal(a, b)
     assert again.runs == 0 and again.reused == 2
 
-    other = FEForward(small_config, obs, bounds, mesh_dir, increments=1, comm=MPI.COMM_SELF, cache_dir=tmp_path)
+    other = mixed_design_fe(small_config, mesh_dir, increments=1, cache_dir=tmp_path)
     other.evaluate_many(points[:1])
     assert other.runs == 1 and other.reused == 0
 

@@ -64,9 +64,9 @@ def test_predictor_is_exact_for_polynomial_load_paths():
 
 
 def test_a_simulation_does_not_depend_on_the_one_before(small_model, small_config, mesh_dir):
-    """The reused factorization and GMRES are reset per simulation: a model that solved another
-    material first returns the same bits as a fresh one (datasets are reproducible across
-    shards and resumed runs)."""
+    """A model that solved another material first returns the same bits as a fresh one
+    (datasets are reproducible across shards and resumed runs; needs PETSc's deterministic
+    vector kernels, see skinfem.fenics)."""
     config = small_config.with_changes(solver={"increments": 3})
     other = SkinParams(mu=2e-3, k1=0.022, k2=15.0, kappa=0.27, theta=80.0)
     design = Design(-0.05, 0.05)

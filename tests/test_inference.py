@@ -276,3 +276,5 @@ def test_multi_membrane_designs_are_spread_over_the_alpha_grid():
     assert len(set(spread_designs(designs, 0, 14))) == 14
     with pytest.raises(ValueError, match="designs"):
         spread_designs(designs, 0, 15)
+    with pytest.raises(ValueError, match="design 14 is not in"):
+        spread_designs(designs, 14, 2)
