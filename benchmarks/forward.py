@@ -2,13 +2,17 @@
 and a mesh/element convergence table.
 
     python benchmarks/forward.py timing [--config paper] [--ranks 1 2] [--refactor-krylov 10 0]
+                                        [--repeat 3] [--petsc KEY=VALUE ...] [--label _x]
     python benchmarks/forward.py convergence
     python benchmarks/forward.py run-one CONFIG OUT.json   # (internal, under mpirun)
 
 ``--refactor-krylov`` values are timed one after another: the default (LU reused as GMRES
 preconditioner, refactorised when GMRES needs > 10 iterations per Newton step) and 0 (plain
 Newton with a factorisation at every step), recorded as ``timing_<config>_<n>rank`` and
-``timing_<config>_<n>rank_refactor0``.
+``timing_<config>_<n>rank_refactor0`` (+ ``--label``). Each timing run makes ``--repeat``
+simulations with one model, as a sweep does, and keeps the median wall time: this machine's
+speed varies by ±15 % from minute to minute. ``--petsc`` adds options to the model's solver
+(e.g. ``--petsc mat_mumps_icntl_7=3`` for another ordering) to measure solver levers.
 
 Results are merged into benchmarks/results/forward.json. Numbers are recorded, not asserted.
 """
@@ -45,8 +49,13 @@ def merge_results(key: str, value) -> None:
     RESULTS.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int) -> None:
-    """One simulation on the ranks of COMM_WORLD; rank 0 writes timings to ``out``."""
+def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, petsc: list[str],
+            repeat: int) -> None:
+    """``repeat`` simulations on the ranks of COMM_WORLD; rank 0 writes timings to ``out``
+    (median wall time; breakdown and counts per simulation).
+
+    ``petsc``: extra ``KEY=VALUE`` PETSc options for the model's solver (without its prefix).
+    """
     import dataclasses
 
     from mpi4py import MPI
@@ -61,20 +70,28 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int) -
     config = dataclasses.replace(config, solver=dataclasses.replace(config.solver, refactor_krylov=refactor_krylov))
     t0 = time.perf_counter()
     model = SkinModel(config, comm, mesh_dir=mesh_dir)
+    options = PETSc.Options(model._prefix)
+    for item in petsc:
+        key, _, value = item.partition("=")
+        options[key] = value
+    model.problem.solver.setFromOptions()
     setup = time.perf_counter() - t0
     PETSc.Log.begin()
-    frames = model.simulate(SkinParams(**PARAMS), Design(**DESIGN))
+    seconds = []
+    for _ in range(repeat):  # the same simulation again: a sweep reuses the model like this
+        frames = model.simulate(SkinParams(**PARAMS), Design(**DESIGN))
+        seconds.append(frames.seconds)
     t1 = time.perf_counter()
     for _ in range(3):
         model.strain_sampler()
     strain_seconds = (time.perf_counter() - t1) / 3 * len(frames.t)
     breakdown = {}
     for name, events in EVENTS.items():
-        breakdown[name] = sum(PETSc.Log.Event(e).getPerfInfo()["time"] for e in events)
+        breakdown[name] = sum(PETSc.Log.Event(e).getPerfInfo()["time"] for e in events) / repeat
     breakdown = {k: comm.allreduce(v, op=MPI.MAX) for k, v in breakdown.items()}
     breakdown["strain_postprocessing"] = strain_seconds
     breakdown["setup_mesh_read_and_jit"] = setup
-    solves = comm.allreduce(PETSc.Log.Event("MatSolve").getPerfInfo()["count"], op=MPI.MAX)
+    solves = comm.allreduce(PETSc.Log.Event("MatSolve").getPerfInfo()["count"], op=MPI.MAX) // repeat
     peak_mb = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, op=MPI.SUM)
     if comm.rank == 0:
         last = frames.strain[-1]
@@ -85,9 +102,11 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int) -
                     "ranks": comm.size,
                     "dofs": model.n_dofs,
                     "skin_cells": len(frames.xy),
-                    "seconds_per_simulation": frames.seconds,
+                    "seconds_per_simulation": float(np.median(seconds)),
+                    "seconds_of_each_repeat": seconds,
                     "newton_iterations_per_increment": frames.newton_iterations,
                     "refactor_krylov": refactor_krylov,
+                    "petsc_options": petsc,
                     "factorizations": model.factorizations,
                     "triangular_solves": solves,
                     "cutbacks": frames.cutbacks,
@@ -100,20 +119,22 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int) -
         )
 
 
-def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[int]) -> None:
+def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[int], petsc: list[str],
+           label: str, repeat: int) -> None:
     mpirun = Path(sys.executable).with_name("mpirun")
     for k in refactor_krylov:
         for n in ranks:
-            out = Path(f"/tmp/skinid-forward-{config}-{n}-{k}.json")
+            name = Path(config).stem
+            out = Path(f"/tmp/skinid-forward-{name}-{n}-{k}.json")
             cmd = [sys.executable, __file__, "run-one", config, str(out), "--mesh-dir", mesh_dir,
-                   "--refactor-krylov", str(k)]
+                   "--refactor-krylov", str(k), "--repeat", str(repeat), *(f"--petsc={p}" for p in petsc)]
             if n > 1:
                 cmd = [str(mpirun), "-n", str(n), *cmd]
             env = {**os.environ, "OMP_NUM_THREADS": "1"}
             subprocess.run(cmd, check=True, env=env)
             result = json.loads(out.read_text())
             print(json.dumps(result, indent=2))
-            merge_results(f"timing_{config}_{n}rank" + ("" if k else "_refactor0"), result)
+            merge_results(f"timing_{name}_{n}rank" + ("" if k else "_refactor0") + label, result)
 
 
 def coarse_average(fine_xy, fine_values, coarse_xy, coarse_edges):
@@ -145,10 +166,12 @@ def convergence(mesh_dir: str) -> None:
     from skinfem.params import Design, SkinParams
 
     runs = {}
+    # h_far = 5.6 h as in the paper preset, except at h = 2 (a 13 mm edge cell): 8 mm there
     cases = [
         ("Q1 h=2", dict(h_membrane=2.0, h_far=8.0), 1, 2),
-        ("Q1 h=1", dict(h_membrane=1.0, h_far=4.0), 1, 2),
-        ("Q1 h=0.5 (paper)", dict(h_membrane=0.5, h_far=2.0), 1, 2),
+        ("Q1 h=1", dict(h_membrane=1.0, h_far=5.6), 1, 2),
+        ("Q1 h=0.5 (paper)", dict(h_membrane=0.5, h_far=2.8), 1, 2),
+        ("Q1 h=0.25", dict(h_membrane=0.25, h_far=1.4), 1, 2),
         ("Q2 h=2", dict(h_membrane=2.0, h_far=8.0), 2, 4),
     ]
     for label, mesh, degree, qdeg in cases:
@@ -163,6 +186,8 @@ def convergence(mesh_dir: str) -> None:
             strain=frames.strain[-1],
             edges=inplane_coordinates(cfg.mesh),
             dofs=model.n_dofs,
+            h_far=mesh["h_far"],
+            skin_cells=len(frames.xy),
             seconds=time.perf_counter() - t0,
         )
         print(label, model.n_dofs, "dofs", f"{runs[label]['seconds']:.1f} s", flush=True)
@@ -175,17 +200,22 @@ def convergence(mesh_dir: str) -> None:
     pairs = [
         ("Q1 h=2", "Q1 h=1"),
         ("Q1 h=1", "Q1 h=0.5 (paper)"),
-        ("Q1 h=2", "Q1 h=0.5 (paper)"),
+        ("Q1 h=0.5 (paper)", "Q1 h=0.25"),
+        ("Q1 h=2", "Q1 h=0.25"),
         ("Q1 h=2", "Q2 h=2"),
-        ("Q2 h=2", "Q1 h=0.5 (paper)"),
+        ("Q2 h=2", "Q1 h=0.25"),
     ]
     table = [
         {"coarse": c, "fine": f, "relative_l2_change_exx_eyy": rel_l2(c, f)} for c, f in pairs
     ]
-    meta = {k: {"dofs": v["dofs"], "seconds": v["seconds"], "max_abs_exx_eyy": np.abs(v["strain"][:, :2]).max(0).tolist()} for k, v in runs.items()}
+    keep = ("dofs", "h_far", "skin_cells", "seconds")
+    meta = {k: {**{q: v[q] for q in keep}, "max_abs_exx_eyy": np.abs(v["strain"][:, :2]).max(0).tolist()}
+            for k, v in runs.items()}
     for row in table:
         print(f"{row['coarse']:>18} vs {row['fine']:<18} {row['relative_l2_change_exx_eyy']:.4f}")
-    merge_results("convergence", {"params": PARAMS, "design": DESIGN, "runs": meta, "table": table})
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    merge_results("convergence", {"params": PARAMS, "design": DESIGN, "runs": meta, "table": table,
+                                  "peak_memory_mb": peak_mb})
 
 
 def main() -> None:
@@ -196,11 +226,16 @@ def main() -> None:
     parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--mesh-dir", default="meshes")
     parser.add_argument("--refactor-krylov", type=int, nargs="+", default=[10, 0])
+    parser.add_argument("--petsc", action="append", default=[], metavar="KEY=VALUE",
+                        help="extra PETSc option of the model's solver (repeatable), e.g. pc_type=lu")
+    parser.add_argument("--label", default="", help="suffix of the result keys, e.g. _lu")
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="simulations per timing run (the machine's speed varies; the median is kept)")
     a = parser.parse_args()
     if a.part == "run-one":
-        run_one(a.args[0], a.args[1], a.mesh_dir, a.refactor_krylov[0])
+        run_one(a.args[0], a.args[1], a.mesh_dir, a.refactor_krylov[0], a.petsc, a.repeat)
     elif a.part == "timing":
-        timing(a.config, a.ranks, a.mesh_dir, a.refactor_krylov)
+        timing(a.config, a.ranks, a.mesh_dir, a.refactor_krylov, a.petsc, a.label, a.repeat)
     else:
         convergence(a.mesh_dir)
 
