@@ -9,7 +9,7 @@ k2 = 11, kappa = 0.285, theta = 30 deg; hidden pre-stretch 1.08 x 1.02 at 30 deg
 projected from the same numbers of FE runs and the measured paper simulation time
 (benchmarks/results/forward.json, 2 ranks, 10 increments) scaled by the small mesh's measured
 time ratio of a simulation with ``--increments`` to one with 10:
-a check at that size is a cluster job (FE runs are independent and spread over ranks).
+a check at that size takes about an hour on 2 cores (FE runs are independent and spread over ranks).
 Results go to benchmarks/results/criticism.json.
 """
 

@@ -12,7 +12,8 @@ Newton with a factorisation at every step), recorded as ``timing_<config>_<n>ran
 ``timing_<config>_<n>rank_refactor0`` (+ ``--label``). Each timing run makes ``--repeat``
 simulations with one model, as a sweep does, and keeps the median wall time: this machine's
 speed varies by ±15 % from minute to minute. ``--petsc`` adds options to the model's solver
-(e.g. ``--petsc mat_mumps_icntl_7=3`` for another ordering) to measure solver levers.
+(e.g. ``--petsc mat_mumps_icntl_7=3`` for another ordering) to measure solver levers;
+``--results benchmarks/results/forward_levers.json`` keeps such runs apart.
 
 Results are merged into benchmarks/results/forward.json. Numbers are recorded, not asserted.
 """
@@ -42,11 +43,11 @@ EVENTS = {
 }
 
 
-def merge_results(key: str, value) -> None:
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    data = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+def merge_results(key: str, value, results: Path = RESULTS) -> None:
+    results.parent.mkdir(parents=True, exist_ok=True)
+    data = json.loads(results.read_text()) if results.exists() else {}
     data[key] = value
-    RESULTS.write_text(json.dumps(data, indent=2) + "\n")
+    results.write_text(json.dumps(data, indent=2) + "\n")
 
 
 def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, petsc: list[str],
@@ -120,7 +121,7 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, p
 
 
 def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[int], petsc: list[str],
-           label: str, repeat: int) -> None:
+           label: str, repeat: int, results: Path) -> None:
     mpirun = Path(sys.executable).with_name("mpirun")
     for k in refactor_krylov:
         for n in ranks:
@@ -134,7 +135,7 @@ def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[i
             subprocess.run(cmd, check=True, env=env)
             result = json.loads(out.read_text())
             print(json.dumps(result, indent=2))
-            merge_results(f"timing_{name}_{n}rank" + ("" if k else "_refactor0") + label, result)
+            merge_results(f"timing_{name}_{n}rank" + ("" if k else "_refactor0") + label, result, results)
 
 
 def coarse_average(fine_xy, fine_values, coarse_xy, coarse_edges):
@@ -201,6 +202,7 @@ def convergence(mesh_dir: str) -> None:
         ("Q1 h=2", "Q1 h=1"),
         ("Q1 h=1", "Q1 h=0.5 (paper)"),
         ("Q1 h=0.5 (paper)", "Q1 h=0.25"),
+        ("Q1 h=2", "Q1 h=0.5 (paper)"),
         ("Q1 h=2", "Q1 h=0.25"),
         ("Q1 h=2", "Q2 h=2"),
         ("Q2 h=2", "Q1 h=0.25"),
@@ -231,11 +233,13 @@ def main() -> None:
     parser.add_argument("--label", default="", help="suffix of the result keys, e.g. _lu")
     parser.add_argument("--repeat", type=int, default=3,
                         help="simulations per timing run (the machine's speed varies; the median is kept)")
+    parser.add_argument("--results", type=Path, default=RESULTS,
+                        help="JSON file the timings are merged into (levers: results/forward_levers.json)")
     a = parser.parse_args()
     if a.part == "run-one":
         run_one(a.args[0], a.args[1], a.mesh_dir, a.refactor_krylov[0], a.petsc, a.repeat)
     elif a.part == "timing":
-        timing(a.config, a.ranks, a.mesh_dir, a.refactor_krylov, a.petsc, a.label, a.repeat)
+        timing(a.config, a.ranks, a.mesh_dir, a.refactor_krylov, a.petsc, a.label, a.repeat, a.results)
     else:
         convergence(a.mesh_dir)
 

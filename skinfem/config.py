@@ -147,8 +147,9 @@ class SolverConfig:
     the stiff membrane and has a round-off floor near 1e-11 N, so ``atol`` must stay above
     it; 1e-10 N is ~1e-5 of a skin nodal force on the paper mesh.
 
-    Linear solves: the MUMPS LU factorisation of the tangent is reused as the preconditioner
-    of GMRES (relative tolerance ``krylov_rtol``) across Newton iterations and increments, and
+    Linear solves: the MUMPS LU factorisation of the tangent is reused as the (right)
+    preconditioner of GMRES across Newton iterations and increments; GMRES stops at the
+    relative tolerance ``krylov_rtol`` or at an absolute residual of ``atol`` / 10; the LU is
     refactorised at the next increment once an increment needed more than
     ``refactor_krylov`` GMRES iterations per Newton step (and before retrying a failed
     increment). ``refactor_krylov = 0`` factorises at every Newton step (plain Newton-LU).
