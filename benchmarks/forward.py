@@ -123,9 +123,9 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, p
 def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[int], petsc: list[str],
            label: str, repeat: int, results: Path) -> None:
     mpirun = Path(sys.executable).with_name("mpirun")
+    name = Path(config).stem
     for k in refactor_krylov:
         for n in ranks:
-            name = Path(config).stem
             out = Path(f"/tmp/skinid-forward-{name}-{n}-{k}.json")
             cmd = [sys.executable, __file__, "run-one", config, str(out), "--mesh-dir", mesh_dir,
                    "--refactor-krylov", str(k), "--repeat", str(repeat), *(f"--petsc={p}" for p in petsc)]
@@ -161,18 +161,19 @@ def convergence(mesh_dir: str) -> None:
     """
     from mpi4py import MPI
 
-    from skinfem.config import Config
+    from skinfem.config import Config, load_config
     from skinfem.mesh import inplane_coordinates
     from skinfem.model import SkinModel
     from skinfem.params import Design, SkinParams
 
     runs = {}
-    # h_far = 5.6 h as in the paper preset, except at h = 2 (a 13 mm edge cell): 8 mm there
-    cases = [
+    paper = load_config("paper").mesh
+    far = paper.h_far / paper.h_membrane  # the paper preset's grading, kept as h changes,
+    cases = [  # except at h = 2, where it would leave a 13 mm edge cell: 8 mm there
         ("Q1 h=2", dict(h_membrane=2.0, h_far=8.0), 1, 2),
-        ("Q1 h=1", dict(h_membrane=1.0, h_far=5.6), 1, 2),
-        ("Q1 h=0.5 (paper)", dict(h_membrane=0.5, h_far=2.8), 1, 2),
-        ("Q1 h=0.25", dict(h_membrane=0.25, h_far=1.4), 1, 2),
+        ("Q1 h=1", dict(h_membrane=1.0, h_far=far * 1.0), 1, 2),
+        ("Q1 h=0.5 (paper)", dict(h_membrane=paper.h_membrane, h_far=paper.h_far), 1, 2),
+        ("Q1 h=0.25", dict(h_membrane=0.25, h_far=far * 0.25), 1, 2),
         ("Q2 h=2", dict(h_membrane=2.0, h_far=8.0), 2, 4),
     ]
     for label, mesh, degree, qdeg in cases:

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from mpi4py import MPI
 
-from skinfem.config import Config
+from skinfem.config import Config, SolverConfig
 from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
@@ -253,7 +253,7 @@ class SkinModel:
 
     # -- solving ---------------------------------------------------------------------------
     @staticmethod
-    def _krylov_options(solver) -> dict:
+    def _krylov_options(solver: SolverConfig) -> dict:
         """GMRES on the exact tangent, preconditioned (from the right, so that GMRES measures
         the true residual in N) by a factorization kept across solves; a linear residual below
         a tenth of the Newton tolerance cannot hold up convergence."""
