@@ -237,6 +237,11 @@ def main() -> None:
     parser.add_argument("--results", type=Path, default=RESULTS,
                         help="JSON file the timings are merged into (levers: results/forward_levers.json)")
     a = parser.parse_args()
+    if a.repeat < 1:
+        parser.error(f"--repeat must be >= 1, got {a.repeat}")
+    bad = [p for p in a.petsc if "=" not in p or not p.split("=", 1)[0]]
+    if bad:
+        parser.error(f"--petsc takes KEY=VALUE (VALUE may be empty), got '{bad[0]}'")
     if a.part == "run-one":
         run_one(a.args[0], a.args[1], a.mesh_dir, a.refactor_krylov[0], a.petsc, a.repeat)
     elif a.part == "timing":
