@@ -49,15 +49,24 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         parser.add_argument("--out", type=Path, required=True, help="noisy dataset (.h5)")
         return parser
     if prog.endswith("check"):
-        parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
         parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
+        parser.add_argument("--config", help="preset or TOML of the mesh the check runs on "
+                                             "(default: the emulator's dataset configuration)")
+        parser.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
+                                                          "(default: the best of 5 spread points)")
         parser.add_argument("--out", type=Path, required=True, help="report directory (its fe_runs/ keeps finished FE runs: rerunning resumes)")
         parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
                             help="measurement noise sd per component [strain] (default: the files' sd columns)")
         parser.add_argument("--noise-length", type=float, default=0.0,
-                            help="noise correlation length [mm] (default 0: independent cells)")
+                            help="noise correlation length [mm] (default 0: independent points)")
         parser.add_argument("--noise-nugget", type=float, default=0.0,
                             help="uncorrelated share of the noise variance in [0, 1] (default 0)")
+        parser.add_argument("--dic-window", type=float, default=1.0,
+                            help="the DIC strain window (virtual strain gauge) side [mm] (default 1)")
+        parser.add_argument("--spacing", type=float, default=1.0,
+                            help="use one measured point per square of this side [mm] (default 1)")
+        parser.add_argument("--no-discretisation", action="store_true",
+                            help="skip the refined-mesh estimate of the check's discretisation error")
         parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
         parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
         parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
@@ -184,29 +193,54 @@ def cmd_noise(args) -> None:
           f"{int((data.status == 1).sum())} simulations\nwrote {args.out}")
 
 
-def cmd_check(args) -> None:
-    from mpi4py import MPI
-
-    from inference.check import CheckSettings, run_check
-    from inference.check_report import write_report
+def check_inputs(args):
+    """Settings, configuration, prior box, emulator, measurements and noise of ``skinid check``."""
+    from inference.check import CheckSettings
     from inference.criticism import NoiseModel
-    from inference.observations import from_measurements
-    from skinfem.effects import EFFECTS
+    from inference.observations import check_field_of_view, read_measurement, thin
+    from skinfem.config import PARAM_NAMES, config_from_toml, load_config
+    from skinfem.dic import StrainGauge
+    from skinfem.effects import EFFECTS, effect_parameters
     from surrogate.emulator import Emulator
 
     settings = CheckSettings(candidates=args.candidates or list(EFFECTS), add=args.add, increments=args.increments,
-                             confirm=args.confirm)
-    emulator = Emulator.load(args.emulator)
-    obs = from_measurements(args.measurement, emulator.xy, float(emulator.meta.get("block_half_length", 25.0)))
+                             confirm=args.confirm, gauge=StrainGauge(args.dic_window), spacing=args.spacing,
+                             discretisation=not args.no_discretisation)
+    emulator = None if args.emulator is None else Emulator.load(args.emulator)
+    if args.config is not None:
+        config = load_config(args.config)
+    elif emulator is not None:
+        config = config_from_toml(emulator.meta["dataset_config"])
+    else:
+        raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
+    bounds = (emulator.param_bounds if emulator is not None
+              else np.array([config.sweep.bounds[n] for n in PARAM_NAMES]))
+    half = config.mesh.membrane_size / 2
+    n_params = 5 + len(effect_parameters(settings.add))
+    measurements = [thin(read_measurement(p, config.mesh.length / 2), args.spacing) for p in args.measurement]
+    for m in measurements:
+        check_field_of_view(m, half, settings.band or 2 * config.mesh.h_membrane, n_params)
     if args.noise_sd is not None:
         sd = np.array(args.noise_sd)
-    elif all(o.sd is not None for o in obs):
-        sd = np.median([o.sd for o in obs], axis=0)
+    elif all(m.sd is not None for m in measurements):
+        sd = np.median(np.concatenate([m.sd for m in measurements]), axis=0)
     else:
         raise ValueError("the measurements have no sd_exx, sd_eyy, sd_exy columns: give --noise-sd XX YY XY")
     noise = NoiseModel(sd, args.noise_length, args.noise_nugget)
+    return settings, config, bounds, emulator, measurements, noise
+
+
+def cmd_check(args) -> None:
+    from mpi4py import MPI
+
+    from inference.check import run_check
+    from inference.check_report import write_report
+    from skinfem.parallel import collective
+
     comm = MPI.COMM_WORLD
-    result = run_check(emulator, obs, noise, settings, args.mesh_dir, comm, cache_dir=Path(args.out) / "fe_runs")
+    settings, config, bounds, emulator, measurements, noise = collective(comm, lambda: check_inputs(args))
+    result = run_check(measurements, noise, settings, config, bounds, emulator, args.mesh_dir, comm,
+                       cache_dir=Path(args.out) / "fe_runs")
     if comm.rank == 0:
         path = write_report(result, args.out)
         print(result.diagnosis.text)
@@ -227,13 +261,35 @@ def main(argv: list[str] | None = None) -> int:
         argv = argv[1:]
     args = build_parser(f"skinid {command}").parse_args(argv)
     from inference.observations import MeasurementError
+    from skinfem.parallel import CollectiveError, abort_on_uncaught
 
+    abort_on_uncaught(f"skinid {command}")
     try:
         COMMANDS[command](args)
+    except CollectiveError as exc:  # raised on every rank: rank 0 says it once
+        if _rank() == 0:
+            print(f"skinid {command}: error: {exc}", file=sys.stderr)
+        return 2
     except (MeasurementError, ValueError, FileNotFoundError) as exc:
         print(f"skinid {command}: error: {exc}", file=sys.stderr)
+        _abort_other_ranks(2)
         return 2
     return 0
+
+
+def _rank() -> int:
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD.rank
+
+
+def _abort_other_ranks(code: int) -> None:
+    """An error on one rank of several: end the whole job (the others may wait in a collective)."""
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.size > 1:
+        sys.stderr.flush()
+        MPI.COMM_WORLD.Abort(code)
 
 
 if __name__ == "__main__":

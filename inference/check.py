@@ -1,8 +1,10 @@
 """``skinid check``: model criticism of measurements against the FE model (see criticism.py).
 
-:func:`run_check` calibrates the baseline (started at the emulator's posterior mode),
-diagnoses its residual, adds the requested effects one after the other and returns every
-model version with its metrics; :func:`inference.check_report.write_report` writes the report.
+:func:`run_check` calibrates the baseline on the mesh the user chose (started at the
+emulator's posterior mode, or at the best of a few spread points), estimates and carries the
+mesh's own discretisation error (discretisation.py), diagnoses the residual, adds the
+requested effects one after the other and returns every model version with its metrics;
+:func:`inference.check_report.write_report` writes the report.
 """
 
 from __future__ import annotations
@@ -12,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 from mpi4py import MPI
 
 from inference.criticism import (
@@ -26,11 +27,14 @@ from inference.criticism import (
     rank_regions,
     residual_metrics,
 )
-from inference.forward import FEForward
-from inference.observations import Observation
-from skinfem.config import config_from_toml
+from inference.discretisation import CorrectedForward, DiscretisationError, estimate, refined_config
+from inference.forward import FailedRun, FEForward, ForwardModel
+from inference.observations import Measurement, map_to_cells
+from skinfem.config import Config
+from skinfem.dic import StrainGauge
 from skinfem.effects import EFFECTS, get_effect
-from surrogate.emulator import COMPONENTS, Emulator
+from skinfem.parallel import on_root
+from surrogate.emulator import Emulator
 
 
 @dataclass
@@ -43,7 +47,10 @@ class CheckSettings:
         increments: load increments of the FE runs (default: the configuration's).
         confirm: how many top candidates are calibrated for real during the diagnosis.
         band: half-width [mm] of the membrane edge strip of the regions (default: 2 cells).
-        max_iterations: residual evaluations per calibration.
+        max_iterations: trial steps per calibration.
+        gauge: the DIC strain window the measurement was made with.
+        spacing: the measured points are thinned to one per square of this side [mm].
+        discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
     """
 
     candidates: list[str] = field(default_factory=lambda: list(EFFECTS))
@@ -52,12 +59,17 @@ class CheckSettings:
     confirm: int = 2
     band: float | None = None
     max_iterations: int = 12
+    gauge: StrainGauge = field(default_factory=StrainGauge)
+    spacing: float = 1.0
+    discretisation: bool = True
 
     def __post_init__(self):
         for name in [*self.candidates, *self.add]:
             get_effect(name)
         if len(set(self.add)) != len(self.add):
             raise ValueError("--add lists an effect twice")
+        if not self.spacing > 0:
+            raise ValueError(f"the point spacing must be > 0 mm, got {self.spacing}")
 
 
 @dataclass
@@ -72,77 +84,91 @@ class Version:
 @dataclass
 class CheckResult:
     data: Data
-    observations: list[Observation]
+    observations: list[Measurement]
     names: list[str]
     bounds: np.ndarray
     half: float
     band: float
     versions: list[Version]
     diagnosis: Diagnosis
-    subspace: dict
-    emulator_rmse: float
+    discretisation: DiscretisationError | None
+    failures: list[FailedRun]
     start: np.ndarray
+    start_from: str
+    gauge_text: str
     fe_seconds_per_run: float
     timings: dict
 
 
-def emulator_start(emulator: Emulator, observations: list[Observation], seed: int = 0) -> np.ndarray:
-    """(5,) posterior mode of the skin parameters under the emulator (known noise)."""
+def emulator_start(emulator: Emulator, measurements: list[Measurement], seed: int = 0) -> np.ndarray:
+    """(5,) posterior mode of the skin parameters under the emulator (known noise).
+
+    The emulator works on its own mesh's cells: the measurements are mapped onto them."""
+    import torch
+
     from inference.model import ObservedWeights, SkinPosterior
     from inference.sampling import find_mode
 
+    observations = [map_to_cells(m, emulator.xy) for m in measurements]
     posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), noise="known",
                               gp_variance="exact")
     with torch.no_grad():
         return posterior.constrain(torch.as_tensor(find_mode(posterior, seed=seed)))[:5].numpy()
 
 
-def subspace_share(emulator: Emulator, data: Data) -> dict:
-    """Share of the measured (standardised, centred) field outside the emulator's PC subspace.
+def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -> np.ndarray:
+    """(p,) the best of the box centre and n - 1 Latin-hypercube points of the skin box
+    (effects at their null values), by whitened chi^2; points whose FE run fails are skipped."""
+    from scipy.stats import qmc
 
-    Also the share that noise alone would put there, so a reader can tell a field the
-    emulator cannot represent from a noisy one.
+    unit = np.vstack([np.full(5, 0.5), qmc.LatinHypercube(d=5, seed=seed).random(n - 1)])
+    points = [np.concatenate([forward.bounds[:5, 0] + u * np.ptp(forward.bounds[:5], axis=1), forward.null[5:]])
+              for u in unit]
+    chi2 = [np.inf if f is None else float(np.nansum(data.whitened_residual(f) ** 2))
+            for f in forward.evaluate_many(points)]
+    if not np.isfinite(min(chi2)):
+        raise ValueError("the FE model converged at none of the starting points")
+    return points[int(np.argmin(chi2))]
+
+
+def run_check(measurements: list[Measurement], noise: NoiseModel, settings: CheckSettings, config: Config,
+              skin_bounds: np.ndarray, emulator: Emulator | None = None, mesh_dir: Path | str = "meshes",
+              comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None) -> CheckResult:
+    """Calibrate the baseline on ``config``'s mesh, estimate its discretisation error, diagnose
+    the residual, add ``settings.add`` effects; see criticism.py and discretisation.py.
+
+    The emulator, when given, only provides the starting point (its posterior mode); without
+    it the start is the best of a few spread points. ``cache_dir`` keeps every finished FE
+    simulation on disk; a rerun of the same check (e.g. after a kill) reads them.
     """
-    out = {}
-    for c, pca in emulator.pcas.items():
-        k = COMPONENTS.index(c)
-        outside = total = noise = 0.0
-        for o, mask in enumerate(data.masks):
-            weights, _ = pca.transform_masked(data.fields[o, :, k], mask)
-            z = (data.fields[o, mask, k] - pca.mean_[mask]) / pca.scale_[mask]
-            recon = weights @ pca.components_[:, mask]
-            outside += float(np.sum((z - recon) ** 2))
-            total += float(np.sum(z**2))
-            noise += (mask.sum() - pca.n_components_) * float(np.mean((data.noise.sd[k] / pca.scale_[mask]) ** 2))
-        out[c] = {"outside": outside / total, "noise_expected": min(noise / total, 1.0)}
-    return out
-
-
-def run_check(emulator: Emulator, observations: list[Observation], noise: NoiseModel, settings: CheckSettings,
-              mesh_dir: Path | str = "meshes", comm: MPI.Comm = MPI.COMM_WORLD,
-              cache_dir: Path | str | None = None) -> CheckResult:
-    """Calibrate the baseline, diagnose it, add ``settings.add`` effects; see module doc.
-
-    ``cache_dir`` keeps every finished FE simulation on disk; a rerun of the same check
-    (e.g. after a kill) reads them instead of simulating again."""
     timings = {}
     t0 = time.perf_counter()
-    config = config_from_toml(emulator.meta["dataset_config"])
-    forward = FEForward(config, observations, emulator.param_bounds, mesh_dir, settings.increments, comm, cache_dir)
-    if forward.xy.shape != emulator.xy.shape or not np.allclose(forward.xy, emulator.xy, atol=1e-6):
-        raise ValueError("the FE model's skin cells differ from the emulator's (mesh changed since the fit?)")
-    data = Data.from_observations(observations, emulator.xy, noise)
-    start = comm.bcast(emulator_start(emulator, observations) if comm.rank == 0 else None)
-    x0 = forward.null.copy()
-    x0[:5] = start
+    forward = FEForward(config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir,
+                        settings.gauge)
+    data = Data.from_points(measurements, noise)
+    if emulator is not None:
+        start = forward.null.copy()
+        start[:5] = on_root(comm, lambda: emulator_start(emulator, measurements))
+    else:
+        start = spread_start(forward, data)
     timings["setup_s"] = time.perf_counter() - t0
     half = config.mesh.membrane_size / 2
     band = settings.band or 2 * config.mesh.h_membrane
 
     t0, runs0 = time.perf_counter(), forward.runs
-    baseline = calibrate(forward, data, x0, list(range(5)), max_iterations=settings.max_iterations)
+    baseline = calibrate(forward, data, start, list(range(5)), max_iterations=settings.max_iterations)
+    disc = None
+    model: ForwardModel = forward
+    if settings.discretisation:
+        fine = FEForward(refined_config(forward.config), measurements, skin_bounds, mesh_dir, None, comm, cache_dir,
+                         settings.gauge)
+        disc = estimate(forward, fine, baseline.x, data)
+        model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd)
+        baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
+        timings["refined_fe_runs"], timings["refined_s"] = fine.runs, disc.seconds
     timings["compare_s"], timings["compare_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
-    diagnosis = diagnose(forward, baseline, data, settings.candidates, half, band, settings.confirm,
+    diagnosis = diagnose(model, baseline, data, settings.candidates, half, band, settings.confirm,
+                         mesh_resolved=disc is None or disc.resolved,
                          max_iterations=settings.max_iterations)  # also the baseline's metrics
     timings["diagnose_s"], timings["diagnose_fe_runs"] = diagnosis.seconds, diagnosis.fe_runs
 
@@ -155,18 +181,18 @@ def run_check(emulator: Emulator, observations: list[Observation], noise: NoiseM
             cal = diagnosis.fits[effect]
             reused_s, reused_runs = reused_s + cal.seconds, reused_runs + cal.fe_runs
         else:
-            cal = extend(forward, previous, data, effect, max_iterations=settings.max_iterations)
+            cal = extend(model, previous, data, effect, max_iterations=settings.max_iterations)
         versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
     timings["add_s"], timings["add_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
     timings["add_reused_from_diagnose_s"], timings["add_reused_from_diagnose_fe_runs"] = reused_s, reused_runs
     timings["fe_runs_read_from_cache"] = forward.reused
-
-    predicted = np.stack([emulator.predict_fields(baseline.x[None, :5], o.alpha, o.t)[0] for o in observations])
-    modelled = [COMPONENTS.index(c) for c in emulator.components]
-    err = (predicted - baseline.model_fields[..., modelled])[data.masks]
+    if disc is not None:
+        diagnosis.text = disc.summary() + " " + diagnosis.text
     return CheckResult(
-        data=data, observations=observations, names=forward.names, bounds=forward.bounds, half=half, band=band,
-        versions=versions, diagnosis=diagnosis, subspace=subspace_share(emulator, data),
-        emulator_rmse=float(np.sqrt(np.mean(err**2))), start=start,
+        data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
+        versions=versions, diagnosis=diagnosis, discretisation=disc, failures=forward.failures, start=start,
+        start_from="emulator's posterior mode" if emulator is not None else "best of 5 spread points",
+        gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
+                    f"(one per {settings.spacing:g} mm square)"),
         fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size, timings=timings,
     )

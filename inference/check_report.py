@@ -9,7 +9,7 @@ import numpy as np
 
 from inference.check import CheckResult
 from inference.plots import pyplot, field_grid, save_figure
-from skinfem.effects import principal_prestretch
+from skinfem.effects import get_effect
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
 
@@ -19,14 +19,14 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
     cal = result.versions[version].calibration
     paths = []
     for o, obs in enumerate(result.observations):
+        mask = result.data.masks[o]
         rows, titles = [], []
         for k, c in enumerate(COMPONENT_LABELS):
-            measured = result.data.fields[o, :, k]
-            model = np.where(result.data.masks[o], cal.model_fields[o, :, k], np.nan)
+            measured, model = result.data.fields[o, mask, k], cal.model_fields[o, mask, k]
             rows.append([measured, model, measured - model])
             titles.append([f"measured {c}", f"model {c} ({cal.label})", f"residual {c}"])
         out = path.with_name(f"{path.stem}_obs{o}.png")
-        field_grid(result.data.xy, rows, titles, out, result.half, float(cal.x[4]), window=2 * result.half,
+        field_grid(result.data.xy[o, mask], rows, titles, out, result.half, float(cal.x[4]), window=2 * result.half,
                    suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
                             f"residual RMSE {result.versions[version].metrics['rmse']:.2e}")
         paths.append(out)
@@ -34,20 +34,19 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
 
 
 def regions_map(result: CheckResult, version: int, path: Path) -> Path:
-    """Per-cell RMS standardised residual with the region outlines of the ranking."""
+    """Per-point RMS standardised residual (all observations) with the region outlines."""
     plt = pyplot()
-    from matplotlib.tri import Triangulation
 
     v = result.versions[version]
-    per_cell = np.sqrt(np.nanmean(result.data.standardised(v.calibration.model_fields) ** 2, axis=(0, 2)))
-    xy = result.data.xy
+    data = result.data
+    per_point = np.sqrt(np.nanmean(data.standardised(v.calibration.model_fields) ** 2, axis=2))[data.masks]
+    xy = data.xy[data.masks]
     fig, ax = plt.subplots(figsize=(7.5, 6))
-    tri = Triangulation(xy[:, 0], xy[:, 1])
-    im = ax.tripcolor(tri, per_cell, shading="gouraud", cmap="magma", vmin=0, vmax=max(3.0, per_cell.max()))
-    fig.colorbar(im, ax=ax, label="RMS residual / noise sd [-]  (noise alone: 1)")
+    im = ax.scatter(xy[:, 0], xy[:, 1], c=per_point, s=6, cmap="magma", vmin=0, vmax=max(3.0, per_point.max()))
+    fig.colorbar(im, ax=ax, label="RMS residual / sd [-]  (noise and model error alone: 1)")
     h = result.half
     band = result.band
-    for d, style in ((h, "w--"), (h - band, "w:"), (h + band, "w:")):
+    for d, style in ((h, "k--"), (h - band, "k:"), (h + band, "k:")):
         ax.plot([-d, d, d, -d, -d], [-d, -d, d, d, -d], style, lw=1)
     theta = np.radians(v.calibration.x[4])
     r = 2.2 * h
@@ -105,6 +104,26 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     return save_figure(fig, path)
 
 
+def discretisation_lines(result: CheckResult) -> list[str]:
+    disc = result.discretisation
+    if disc is None:
+        return ["Discretisation error: not estimated (--no-discretisation).", ""]
+    return ["### The check's own discretisation error", "", disc.summary(), "",
+            "| | RMS, share of the field | RMS [noise sd] |", "|---|---|---|",
+            f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
+            f"| after the refined-mesh correction (carried in the covariance) | {disc.relative / 2:.1%} | "
+            f"{disc.sigma / 2:.2f} |", ""]
+
+
+def failure_lines(result: CheckResult) -> list[str]:
+    if not result.failures:
+        return ["Every FE run converged.", ""]
+    lines = [f"{len(result.failures)} FE run(s) did not converge; each was a rejected step (the calibration "
+             "shortened its step) or a one-sided signature difference:", ""]
+    return lines + [f"- {', '.join(f'{n} = {v:.4g}' for n, v in zip(result.names, f.x))}: {f.message}"
+                    for f in result.failures] + [""]
+
+
 def _fmt(value: float) -> str:
     return f"{value:.4g}"
 
@@ -127,21 +146,20 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
              f"{result.data.noise.length:g} mm, uncorrelated share {result.data.noise.nugget:g}.", "",
              "## Verdict", "", d.text, "",
              "## 1. Compare: the calibrated baseline against the measurements", "",
-             "Calibrated on the FE model (Gauss–Newton from the emulator's posterior mode; Laplace posterior).", "",
+             f"Calibrated on the FE model (Levenberg–Marquardt from the {result.start_from}; Laplace posterior), "
+             f"measured like the DIC system: {result.gauge_text}.", "",
              "| metric | value | noise alone |", "|---|---|---|",
              f"| residual RMSE [log strain] | {_fmt(base['rmse'])} | {_fmt(base['noise_rms'])} |",
              f"| χ²/dof (whitened, dof = {base['dof']}) | {base['chi2_per_dof']:.3f} | 1 ± {np.sqrt(2 / base['dof']):.3f} |",
              f"| posterior-predictive p-value | {base['ppc_p']:.3f} | uniform on [0, 1] |",
              f"| Moran's I of the residual / sd (z vs the noise model) | {base['moran_I']:.3f} (z = {base['moran_z']:.1f}) | z ~ N(0, 1) |",
-             "| share of the measured field outside the emulator's PC subspace | "
-             + ", ".join(f"{c}: {v['outside']:.1%}" for c, v in result.subspace.items()) + " | "
-             + ", ".join(f"{c}: {v['noise_expected']:.1%}" for c, v in result.subspace.items()) + " |",
-             f"| emulator vs FE at the calibrated parameters, RMSE | {_fmt(result.emulator_rmse)} | |", ""]
+             ""]
+    lines += discretisation_lines(result) + failure_lines(result)
     lines += [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(figures["baseline"])]
     lines += ["", "## 2. Where the model fails", "",
               "RMS of (measured − model) / sd over each region's cells (noise alone gives 1):", "",
-              "| rank | region | cells | RMS [σ] |", "|---|---|---|---|"]
-    lines += [f"| {i + 1} | {g['region']} | {g['cells']} | {g['rms_sigma']:.2f} |" for i, g in enumerate(d.regions)]
+              "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
+    lines += [f"| {i + 1} | {g['region']} | {g['points']} | {g['rms_sigma']:.2f} |" for i, g in enumerate(d.regions)]
     lines += ["", "![regions](regions.png)", "", "## 3. Which effect is missing", "",
               "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
               "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
@@ -172,10 +190,10 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
             cells.append(f"{_fmt(e['value'])} ± {_fmt(e['sd'])}" if e else "—")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     final = result.versions[-1].calibration
-    if "pre_stretch.eps_xx" in final.free_names:
-        l1, l2, ang = principal_prestretch(*(final.x[final.names.index(f"pre_stretch.{k}")]
-                                             for k in ("eps_xx", "eps_yy", "eps_xy")))
-        lines += ["", f"Pre-stretch of the final version: λ1 = {l1:.3f}, λ2 = {l2:.3f}, major axis at {ang:.0f}°."]
+    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:])]
+    for name in added:
+        values = {q.split(".", 1)[1]: float(final.x[final.names.index(q)]) for q in get_effect(name).qualified_names()}
+        lines += ["", f"{name} in the final version: {get_effect(name).describe(values)}"]
     if last:
         lines += ["", f"Final version ({final.label}), residual maps:", ""]
         lines += [f"![final residual, observation {i}]({p.name})" for i, p in enumerate(figures["final"])]
@@ -199,10 +217,13 @@ def report_dict(result: CheckResult) -> dict:
         "verdict": d.text,
         "noise": {"sd": result.data.noise.sd.tolist(), "length_mm": result.data.noise.length,
                   "nugget": result.data.noise.nugget},
-        "observations": [{"alpha": o.alpha.tolist(), "t": o.t, "source": o.source} for o in result.observations],
-        "emulator_start": dict(zip(result.names[:5], map(float, result.start))),
-        "subspace_share": result.subspace,
-        "emulator_rmse_at_calibration": result.emulator_rmse,
+        "observations": [{"alpha": o.alpha.tolist(), "t": o.t, "source": str(o.path)} for o in result.observations],
+        "start": {"from": result.start_from, **dict(zip(result.names[:5], map(float, result.start)))},
+        "discretisation": None if result.discretisation is None else {
+            "mesh": result.discretisation.mesh, "refined": result.discretisation.refined,
+            "relative": result.discretisation.relative, "sigma": result.discretisation.sigma,
+            "resolved": result.discretisation.resolved, "suggested_h_membrane_mm": result.discretisation.suggested_h()},
+        "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
         "regions": d.regions,
         "candidates": [dict(vars(s)) for s in d.scores],
         "versions": [{"label": v.calibration.label, "metrics": v.metrics, "regions": v.regions,

@@ -41,11 +41,12 @@ from scipy.spatial import cKDTree
 from inference.forward import ForwardModel
 from inference.noise import correlation_matrix, noise_fields
 from inference.observations import Observation
-from skinfem.effects import get_effect, principal_prestretch
+from skinfem.effects import get_effect
 
 STRONG_EVIDENCE = 6.0  # Delta BIC above which a candidate is reported (Kass & Raftery: strong)
 MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess residual
 ALPHA = 0.01  # posterior-predictive p below which the residual is "structured" (not noise)
+CHI2_TOLERANCE = 1e-3  # a calibration stops once a step lowers chi^2 by less than this
 
 
 @dataclass
@@ -63,25 +64,38 @@ class NoiseModel:
             raise ValueError(f"noise sd must be three positive numbers (xx, yy, xy), got {self.sd}")
         correlation_matrix(np.zeros((1, 2)), self.length, self.nugget)  # validates both
 
-    def whitener(self, xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """Symmetric R^(-1/2) (m, m) on the masked cells (cached per mask)."""
-        key = ("whitener", xy.tobytes(), mask.tobytes())
+    def whiteners(self, xy: np.ndarray, model_sd: np.ndarray | None = None) -> list[np.ndarray]:
+        """Symmetric Sigma_c^(-1/2) (m, m) per component c for points xy (m, 2), cached.
+
+        Sigma_c = sd_c^2 R + diag(model_sd[:, c]^2): the correlated noise plus an independent
+        model-form error of standard deviation ``model_sd`` (m, 3) (None: no model error).
+        """
+        key = ("whiten", xy.tobytes(), None if model_sd is None else model_sd.tobytes())
         if key not in self._roots:
-            corr = correlation_matrix(xy[mask], self.length, self.nugget)
-            w, v = np.linalg.eigh(corr)
-            w = np.maximum(w, 1e-10 * w.max())
-            self._roots[key] = (v / np.sqrt(w)) @ v.T
+            corr = correlation_matrix(xy, self.length, self.nugget)
+            if model_sd is None:
+                root = inverse_sqrt(corr)
+                self._roots[key] = [root / s for s in self.sd]
+            else:
+                self._roots[key] = [inverse_sqrt(s**2 * corr + np.diag(model_sd[:, c] ** 2))
+                                    for c, s in enumerate(self.sd)]
         return self._roots[key]
 
-    def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray) -> np.ndarray:
-        """(n_obs, n_cells, 3) residual -> standardised residual (NaN off the mask)."""
-        out = np.full_like(residual, np.nan)
+    def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray,
+               model_sd: np.ndarray | None = None) -> np.ndarray:
+        """(n_obs, n_pts, 3) residual -> whitened residual (NaN off the mask).
+
+        ``xy`` (n_obs, n_pts, 2) points, ``masks`` (n_obs, n_pts), ``model_sd`` (n_obs, n_pts, 3)
+        or None: see :meth:`whiteners`."""
+        out = np.full(residual.shape, np.nan)
         for o, mask in enumerate(masks):
-            out[o, mask] = self.whitener(xy, mask) @ (residual[o, mask] / self.sd)
+            extra = None if model_sd is None else model_sd[o, mask]
+            for c, root in enumerate(self.whiteners(xy[o, mask], extra)):
+                out[o, mask, c] = root @ residual[o, mask, c]
         return out
 
     def sample(self, xy: np.ndarray, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
-        """Noise fields (*shape, n_cells, 3) drawn from this model."""
+        """Noise fields (*shape, m, 3) drawn from this model at points xy (m, 2)."""
         key = ("root", xy.tobytes())
         if key not in self._roots:  # eigen-root: also valid for length 0 or nugget 1
             w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
@@ -89,35 +103,72 @@ class NoiseModel:
         return noise_fields(self._roots[key], self.sd, shape, rng)
 
 
+def inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
+    """Symmetric inverse square root of a symmetric positive (semi-)definite matrix."""
+    w, v = np.linalg.eigh(matrix)
+    w = np.maximum(w, 1e-10 * w.max())
+    return (v / np.sqrt(w)) @ v.T
+
+
 def stack(values: np.ndarray, masks: np.ndarray) -> np.ndarray:
-    """Flatten (n_obs, n_cells, ...) values on the observed cells to (n,)."""
+    """Flatten (n_obs, n_pts, ...) values on the observed points to (n,)."""
     return np.concatenate([values[o, m].ravel() for o, m in enumerate(masks)])
 
 
 @dataclass
 class Data:
-    """Measured fields of the observations with their masks and noise model."""
+    """Measured fields of the observations at their points, with the noise and model-error terms.
 
-    fields: np.ndarray  # (n_obs, n_cells, 3), NaN off the mask
-    masks: np.ndarray  # (n_obs, n_cells) bool
-    xy: np.ndarray  # (n_cells, 2) [mm]
+    Attributes:
+        fields: (n_obs, n_pts, 3) log strain, NaN off the mask (observations zero-padded to the
+            largest point count).
+        masks: (n_obs, n_pts) True where a point is measured.
+        xy: (n_obs, n_pts, 2) points [mm].
+        noise: the stated measurement noise.
+        model_sd: (n_obs, n_pts, 3) or None: standard deviation of the model's own error at the
+            points (discretisation), carried as an independent variance next to the noise.
+    """
+
+    fields: np.ndarray
+    masks: np.ndarray
+    xy: np.ndarray
     noise: NoiseModel
+    model_sd: np.ndarray | None = None
 
     @classmethod
-    def from_observations(cls, observations: list[Observation], xy: np.ndarray, noise: NoiseModel) -> "Data":
-        return cls(np.stack([o.fields for o in observations]), np.stack([o.mask for o in observations]),
-                   np.asarray(xy), noise)
+    def from_points(cls, observations: list, noise: NoiseModel) -> "Data":
+        """From observations with ``xy`` (n_o, 2) and ``strain`` (n_o, 3) (e.g. measurements)."""
+        n = max(len(o.xy) for o in observations)
+        fields = np.full((len(observations), n, 3), np.nan)
+        xy = np.zeros((len(observations), n, 2))
+        masks = np.zeros((len(observations), n), bool)
+        for i, o in enumerate(observations):
+            fields[i, : len(o.xy)], xy[i, : len(o.xy)], masks[i, : len(o.xy)] = o.strain, o.xy, True
+        return cls(fields, masks, xy, noise)
+
+    def with_model_sd(self, model_sd: np.ndarray | None) -> "Data":
+        return Data(self.fields, self.masks, self.xy, self.noise, model_sd)
 
     @property
     def n(self) -> int:
         return int(self.masks.sum()) * 3
 
+    @property
+    def total_sd(self) -> np.ndarray:
+        """(n_obs, n_pts, 3) per-point sd of noise and model error together."""
+        sd = np.broadcast_to(self.noise.sd, self.fields.shape)
+        return sd if self.model_sd is None else np.sqrt(sd**2 + self.model_sd**2)
+
     def standardised(self, model_fields: np.ndarray) -> np.ndarray:
-        """(data - model) / sd per component, NaN off the mask (still spatially correlated)."""
-        return (self.fields - model_fields) / self.noise.sd
+        """(data - model) / total sd per component, NaN off the mask (still spatially correlated)."""
+        return (self.fields - model_fields) / self.total_sd
 
     def whitened_residual(self, model_fields: np.ndarray) -> np.ndarray:
-        return self.noise.whiten(self.fields - model_fields, self.xy, self.masks)
+        return self.noise.whiten(self.fields - model_fields, self.xy, self.masks, self.model_sd)
+
+    def whiten(self, fields: np.ndarray) -> np.ndarray:
+        """Stacked whitened (n,) of any (n_obs, n_pts, 3) field difference."""
+        return stack(self.noise.whiten(fields, self.xy, self.masks, self.model_sd), self.masks)
 
 
 @dataclass
@@ -127,9 +178,10 @@ class Calibration:
     Attributes:
         names: all parameter names of the forward model; x: (p,) values (fixed ones included).
         free: indices of the calibrated parameters; cov: (k, k) their covariance.
-        model_fields: (n_obs, n_cells, 3) fields at x; whitened: standardised residual.
-        jac: (n, k) derivative of the stacked standardised *model* with respect to the free
+        model_fields: (n_obs, n_pts, 3) fields at x; whitened: whitened residual.
+        jac: (n, k) derivative of the stacked whitened *model* with respect to the free
             parameters (physical units).
+        rejected: parameter points (p,) where the FE model did not converge (steps rejected).
     """
 
     names: list[str]
@@ -142,6 +194,7 @@ class Calibration:
     fe_runs: int
     seconds: float
     label: str = "baseline"
+    rejected: list[np.ndarray] = field(default_factory=list)
 
     @property
     def free_names(self) -> list[str]:
@@ -162,55 +215,98 @@ class Calibration:
                 if i in self.free}
 
 
+class CalibrationError(RuntimeError):
+    """The forward model has no solution at the calibration's starting point."""
+
+
+class _UnitBoxProblem:
+    """Whitened residuals of the free parameters z in the unit box [0, 1]^k (helper of calibrate)."""
+
+    def __init__(self, forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int]):
+        self.forward, self.data, self.free = forward, data, free
+        self.lo, self.span = forward.bounds[free, 0], np.ptp(forward.bounds[free], axis=1)
+        self.base = np.asarray(x0, dtype=float).copy()
+        self.rejected: list[np.ndarray] = []
+
+    def point(self, z: np.ndarray) -> np.ndarray:
+        x = self.base.copy()
+        x[self.free] = self.lo + np.clip(z, 0, 1) * self.span
+        return x
+
+    def residuals(self, zs: list[np.ndarray]) -> list[np.ndarray | None]:
+        """Stacked whitened residuals (n,) at each z; None (and recorded) where FE failed."""
+        points = [self.point(z) for z in zs]
+        out = []
+        for x, fields in zip(points, self.forward.evaluate_many(points)):
+            if fields is None:
+                self.rejected.append(x)
+                out.append(None)
+            else:
+                out.append(stack(self.data.whitened_residual(fields), self.data.masks))
+        return out
+
+    def jacobian(self, z: np.ndarray, r0: np.ndarray, step: float) -> np.ndarray:
+        """(n, k) one-sided differences d r / d z; the other side where a run failed (0 if both)."""
+        eye = np.eye(len(z))
+        h = np.where(z + step <= 1, step, -step)
+        columns = self.residuals([z + h[i] * eye[i] for i in range(len(z))])
+        retry = [i for i, c in enumerate(columns) if c is None and 0 <= z[i] - h[i] <= 1]
+        h[retry] *= -1
+        for i, c in zip(retry, self.residuals([z + h[i] * eye[i] for i in retry])):
+            columns[i] = c
+        return np.stack([np.zeros_like(r0) if c is None else (c - r0) / h[i] for i, c in enumerate(columns)], 1)
+
+
 def calibrate(forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int], label: str = "baseline",
               max_iterations: int = 12, step: float = 1e-3) -> Calibration:
     """Least-squares fit of the free parameters (within their prior box) to the whitened data.
 
-    Jacobians are forward differences of ``step`` in the unit box (one run per free
-    parameter, spread over MPI ranks by the forward model). Returns the Laplace posterior.
+    Levenberg–Marquardt in the unit box of the prior (steps projected onto the box). A trial
+    point where the FE model does not converge is a rejected step: the damping grows (the
+    step shrinks), the point is recorded in ``Calibration.rejected`` and the fit continues.
+    Jacobians are forward differences of ``step`` in the unit box (one run per free parameter,
+    spread over MPI ranks by the forward model). The fit stops once a step lowers chi^2 by less
+    than ``CHI2_TOLERANCE`` (the Jacobian of that step's start is kept for the covariance) or
+    after ``max_iterations`` trial steps. Returns the Laplace posterior at the optimum.
+
+    Raises:
+        CalibrationError: the model does not converge at the starting point.
     """
     start, runs0 = time.perf_counter(), forward.runs
-    lo, span = forward.bounds[free, 0], np.ptp(forward.bounds[free], axis=1)
-    base = np.asarray(x0, dtype=float).copy()
-
-    def point(z):
-        x = base.copy()
-        x[free] = lo + np.clip(z, 0, 1) * span
-        return x
-
-    def residual(fields):
-        return stack(data.whitened_residual(fields), data.masks)
-
-    def fun(z):
-        return residual(forward(point(z)))
-
-    def jac(z):
-        h = np.where(z + step <= 1, step, -step)
-        pts = [point(z)] + [point(z + h[i] * np.eye(len(z))[i]) for i in range(len(z))]
-        fields = forward.evaluate_many(pts)
-        r0 = residual(fields[0])
-        return np.stack([(residual(f) - r0) / h[i] for i, f in enumerate(fields[1:])], 1)
-
-    z0 = np.clip((base[free] - lo) / span, 0, 1)
-    fit = least_squares(fun, z0, jac=jac, bounds=(0, 1), method="trf", x_scale=1.0,
-                        max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
-    x = point(fit.x)
-    J_unit = fit.jac  # d residual / dz at the optimum
-    jac_phys = -J_unit / span  # d model / dx (the residual is data - model)
-    info = J_unit.T @ J_unit
-    cov_unit = np.linalg.pinv(info, rcond=1e-12)
-    cov = cov_unit * np.outer(span, span)
+    problem = _UnitBoxProblem(forward, data, x0, free)
+    z = np.clip((problem.base[free] - problem.lo) / problem.span, 0, 1)
+    (r,) = problem.residuals([z])
+    if r is None:
+        raise CalibrationError(f"the FE model does not converge at the starting point {problem.point(z)}")
+    J, damping = problem.jacobian(z, r, step), 1e-3
+    for _ in range(max_iterations):
+        A, g = J.T @ J, J.T @ r
+        dz = np.linalg.solve(A + damping * np.diag(np.diag(A) + 1e-12 * np.trace(A)), -g)
+        z_new = np.clip(z + dz, 0, 1)
+        if np.max(np.abs(z_new - z)) < 1e-8:
+            break
+        (r_new,) = problem.residuals([z_new])
+        if r_new is None or r_new @ r_new >= r @ r:  # failed run or no decrease: a shorter step
+            damping *= 10 if r_new is None else 4
+            continue
+        decrease = r @ r - r_new @ r_new
+        z, r, damping = z_new, r_new, damping / 3
+        if decrease < CHI2_TOLERANCE:  # chi^2 no longer moves by a statistically visible amount
+            break
+        J = problem.jacobian(z, r, step)
+    x = problem.point(z)
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-12) * np.outer(problem.span, problem.span)
     fields = forward(x)
     return Calibration(
         names=list(forward.names), x=x, free=list(free), cov=cov, model_fields=fields,
-        whitened=data.whitened_residual(fields), jac=jac_phys, fe_runs=forward.runs - runs0,
-        seconds=time.perf_counter() - start, label=label,
+        whitened=data.whitened_residual(fields), jac=-J / problem.span, fe_runs=forward.runs - runs0,
+        seconds=time.perf_counter() - start, label=label, rejected=problem.rejected,
     )
 
 
 # -- metrics ---------------------------------------------------------------------------------
 def neighbour_weights(xy: np.ndarray, k: int = 8) -> sparse.csr_matrix:
-    """Symmetric binary k-nearest-neighbour weights (n, n) on cell centroids."""
+    """Symmetric binary k-nearest-neighbour weights (n, n) on points (n, 2)."""
     k = min(k, len(xy) - 1)
     _, idx = cKDTree(xy).query(xy, k + 1)
     rows = np.repeat(np.arange(len(xy)), k)
@@ -219,7 +315,7 @@ def neighbour_weights(xy: np.ndarray, k: int = 8) -> sparse.csr_matrix:
 
 
 def morans_i_statistic(values: np.ndarray, masks: np.ndarray, weights: list[sparse.csr_matrix]) -> float:
-    """Moran's I of (n_obs, n_cells, 3) values, pooled over observations and components.
+    """Moran's I of (n_obs, n_pts, 3) values, pooled over observations and components.
 
     Each (observation, component) map is one block of a block-diagonal k-NN weight matrix.
     """
@@ -239,15 +335,20 @@ def morans_i_statistic(values: np.ndarray, masks: np.ndarray, weights: list[spar
 def morans_i(standardised: np.ndarray, data: "Data", n_sim: int = 400, seed: int = 0) -> dict[str, float]:
     """Moran's I of the standardised residual and its null distribution under the noise model.
 
-    The noise itself is spatially correlated, so the null is simulated: I of ``n_sim`` noise
-    fields drawn from the stated noise model. z = (I - mean_null) / sd_null; p is the
+    The noise itself is spatially correlated, so the null is simulated: I of ``n_sim`` fields
+    drawn from the stated noise model plus the model-error term. z = (I - mean_null) / sd_null; p is the
     Monte-Carlo p-value for more positive autocorrelation (structure) than noise gives.
     """
-    weights = [neighbour_weights(data.xy[m]) for m in data.masks]
+    weights = [neighbour_weights(data.xy[o, m]) for o, m in enumerate(data.masks)]
     stat = morans_i_statistic(standardised, data.masks, weights)
     rng = np.random.default_rng(seed)
-    noise = data.noise.sample(data.xy, (n_sim, len(data.masks)), rng) / data.noise.sd
-    null = np.array([morans_i_statistic(f, data.masks, weights) for f in noise])
+    null_fields = np.zeros((n_sim, *data.fields.shape))
+    for o, m in enumerate(data.masks):
+        draw = data.noise.sample(data.xy[o, m], (n_sim,), rng)
+        if data.model_sd is not None:
+            draw += data.model_sd[o, m] * rng.standard_normal(draw.shape)
+        null_fields[:, o, m] = draw / data.total_sd[o, m]
+    null = np.array([morans_i_statistic(f, data.masks, weights) for f in null_fields])
     z = (stat - null.mean()) / null.std()
     return {"I": float(stat), "z": float(z), "p": float((1 + np.sum(null >= stat)) / (n_sim + 1))}
 
@@ -291,10 +392,10 @@ def residual_metrics(cal: Calibration, data: Data, n_draws: int = 4000, seed: in
 
 
 def region_masks(xy: np.ndarray, half: float, theta_deg: float, band: float) -> dict[str, np.ndarray]:
-    """Cells of each named region around a membrane |x|, |y| <= half [mm].
+    """Points (n, 2) [mm] of each named region around a membrane |x|, |y| <= half [mm].
 
     ``band`` [mm] is the half-width of the edge strip; the far field (beyond the strip) is
-    split by the angle between a cell's position and the fiber direction theta.
+    split by the angle between a point's position and the fiber direction theta.
     """
     ax, ay = np.abs(xy[:, 0]), np.abs(xy[:, 1])
     ring = np.maximum(ax, ay)
@@ -314,14 +415,19 @@ def region_masks(xy: np.ndarray, half: float, theta_deg: float, band: float) -> 
 
 
 def rank_regions(cal: Calibration, data: Data, half: float, band: float) -> list[dict]:
-    """Regions ranked by RMS standardised residual (data - model)/sd [sigma]; noise alone gives ~1."""
+    """Regions ranked by RMS standardised residual (data - model)/sd [sigma]; noise alone gives ~1.
+
+    The sd is the total one (noise and model error); points of every observation are pooled."""
     theta = float(cal.x[4])
-    per_cell = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=(0, 2))  # (n_cells,)
-    out = []
-    for name, mask in region_masks(data.xy, half, theta, band).items():
-        if mask.any():
-            out.append({"region": name, "cells": int(mask.sum()),
-                        "rms_sigma": float(np.sqrt(np.nanmean(per_cell[mask])))})
+    squares = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=2)  # (n_obs, n_pts)
+    sums: dict[str, list[float]] = {}
+    for o, m in enumerate(data.masks):
+        for name, inside in region_masks(data.xy[o], half, theta, band).items():
+            sel = inside & m
+            total = sums.setdefault(name, [0.0, 0])
+            total[0] += float(squares[o, sel].sum())
+            total[1] += int(sel.sum())
+    out = [{"region": name, "points": n, "rms_sigma": math.sqrt(ss / n)} for name, (ss, n) in sums.items() if n]
     return sorted(out, key=lambda r: -r["rms_sigma"])
 
 
@@ -360,21 +466,32 @@ class CandidateScore:
 
 def signatures(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str],
                rel_step: float = 0.02) -> dict[str, np.ndarray]:
-    """Whitened signatures (n, dim phi) of each effect: central differences of the model."""
-    jobs = []
+    """Whitened signatures (n, dim phi) of each effect: differences of the model at ``cal.x``.
+
+    Each parameter is moved ``rel_step`` of its prior range both ways, clipped to the range
+    (a null value on a bound gives a one-sided difference); a side whose FE run failed is
+    replaced by the calibrated point itself; if both fail the column is zero.
+    """
+    jobs = []  # (effect, parameter index, low value, high value)
     for name in effects:
-        for q in get_effect(name).qualified_names():
-            i = forward.names.index(q)
+        for i in forward.index(get_effect(name).qualified_names()):
             h = rel_step * np.ptp(forward.bounds[i])
-            for sign in (1, -1):
-                x = cal.x.copy()
-                x[i] += sign * h
-                jobs.append((name, h, x))
-    fields = forward.evaluate_many([job[-1] for job in jobs])
+            jobs.append((name, i, max(cal.x[i] - h, forward.bounds[i, 0]), min(cal.x[i] + h, forward.bounds[i, 1])))
+    points = []
+    for _, i, low, high in jobs:
+        for value in (low, high):
+            x = cal.x.copy()
+            x[i] = value
+            points.append(x)
+    fields = forward.evaluate_many(points)
     columns: dict[str, list] = {name: [] for name in effects}
-    for (name, h, _), f_plus, f_minus in zip(jobs[::2], fields[::2], fields[1::2]):
-        diff = stack(data.noise.whiten(f_plus - f_minus, data.xy, data.masks), data.masks) / (2 * h)
-        columns[name].append(diff)
+    for (name, i, low, high), f_low, f_high in zip(jobs, fields[::2], fields[1::2]):
+        if f_low is None:
+            f_low, low = cal.model_fields, cal.x[i]
+        if f_high is None:
+            f_high, high = cal.model_fields, cal.x[i]
+        column = data.whiten(f_high - f_low) / (high - low) if high > low else np.zeros(data.n)
+        columns[name].append(column)
     return {name: np.stack(cols, 1) for name, cols in columns.items()}
 
 
@@ -432,7 +549,7 @@ class Diagnosis:
 
 
 def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str], half: float, band: float,
-             confirm: int = 2, **fit_kwargs) -> Diagnosis:
+             confirm: int = 2, mesh_resolved: bool = True, **fit_kwargs) -> Diagnosis:
     """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
@@ -456,12 +573,15 @@ def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[
         scores.sort(key=lambda s: -s.delta_bic)
     for s in scores:
         s.explains = metrics["structured"] and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
-    return Diagnosis(metrics, regions, scores, fits, verdict(metrics, scores, regions), forward.runs - runs0,
+    return Diagnosis(metrics, regions, scores, fits, verdict(metrics, scores, regions, mesh_resolved), forward.runs - runs0,
                      time.perf_counter() - start)
 
 
-def verdict(metrics: dict, scores: list[CandidateScore], regions: list[dict]) -> str:
-    """One paragraph: is the residual noise, where is it not, which candidate explains it."""
+def verdict(metrics: dict, scores: list[CandidateScore], regions: list[dict], mesh_resolved: bool = True) -> str:
+    """One paragraph: is the residual noise, where is it not, which candidate explains it.
+
+    ``mesh_resolved`` False (the model's discretisation error exceeds the noise) turns "something
+    outside the registry is missing" into "rerun on a finer mesh first"."""
     if not metrics["structured"]:
         return (f"The residual is consistent with the stated noise (chi^2/dof = {metrics['chi2_per_dof']:.2f}, "
                 f"posterior-predictive p = {metrics['ppc_p']:.2f}, Moran's I z = {metrics['moran_z']:.1f}): "
@@ -469,15 +589,18 @@ def verdict(metrics: dict, scores: list[CandidateScore], regions: list[dict]) ->
     worst = regions[0]
     text = (f"The residual is structured (chi^2/dof = {metrics['chi2_per_dof']:.2f}, posterior-predictive "
             f"p = {metrics['ppc_p']:.3f}, Moran's I z = {metrics['moran_z']:.1f}); it is largest at the "
-            f"{worst['region']} ({worst['rms_sigma']:.1f} sigma RMS; noise alone gives 1).")
+            f"{worst['region']} ({worst['rms_sigma']:.1f} sigma RMS; noise and carried model error alone give 1).")
     best = next((s for s in scores if s.explains), None)
     if best is None:
         lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
+        if not mesh_resolved:
+            return (text + " No candidate explains the residual." + lead + " The check's own discretisation error "
+                    "exceeds the noise, so this structure may be the mesh's: rerun on a finer mesh before concluding "
+                    "that something outside the registry is missing.")
         return text + " No candidate explains the residual." + lead + " Something outside the registry is missing."
     text += f" Most likely missing: {best.summary()}."
-    if best.effect == "pre_stretch":
-        l1, l2, ang = principal_prestretch(*best.estimate.values())
-        text += f" Estimated pre-stretch {l1:.3f} x {l2:.3f}, major axis at {ang:.0f} deg."
+    effect = get_effect(best.effect)
+    text += " Estimated " + effect.describe({q.split(".", 1)[1]: v for q, v in best.estimate.items()})
     if best.confounding > 0.8:
         text += (" It is strongly confounded with the skin parameters: more load frames or membrane designs "
                  "would separate them.")

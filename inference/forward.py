@@ -2,12 +2,14 @@
 
 A forward model maps x = (mu, k1, k2, kappa, theta [deg], effect parameters...) — the names
 in ``forward.names``, with prior ranges ``forward.bounds`` — to the skin log strain of every
-observation, (n_obs, n_cells, 3). Two implementations share this interface:
+observation, (n_obs, n_points, 3), or None where the model has no solution (Newton failed).
+Two implementations share this interface:
 
 - :class:`FEForward`: the finite-element model (:class:`skinfem.model.SkinModel`) built with
   every candidate effect of :mod:`skinfem.effects` (at their null values it *is* the
-  baseline). It runs one simulation per distinct membrane design and picks the observed load
-  fractions. ``evaluate_many`` spreads independent parameter points over MPI ranks (each rank
+  baseline), on any mesh, measured at the observations' points by the DIC operator of
+  :mod:`skinfem.dic`. It runs one simulation per distinct membrane design and picks the
+  observed load fractions. ``evaluate_many`` spreads independent parameter points over MPI ranks (each rank
   owns a serial model); results are cached by parameter vector, in memory and, with
   ``cache_dir``, on disk (one ``.npy`` per point, written atomically as soon as it is
   computed), so a killed check resumes without repeating finished simulations.
@@ -22,14 +24,19 @@ import hashlib
 import os
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
-from inference.observations import Observation
 from skinfem.config import PARAM_NAMES, Config
+from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
+from skinfem.parallel import collective, on_root
+
+
+MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 
 
 class ForwardModel:
@@ -40,8 +47,8 @@ class ForwardModel:
     null: np.ndarray
     runs: int = 0
 
-    def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """Fields (n_obs, n_cells, 3) at each parameter vector (p,)."""
+    def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
+        """Fields (n_obs, n_points, 3) at each parameter vector (p,); None where it failed."""
         raise NotImplementedError
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -67,38 +74,69 @@ def parameter_space(skin_bounds: np.ndarray, effects: Sequence[str]) -> tuple[li
     return names, bounds, null
 
 
+@dataclass(frozen=True)
+class PointSet:
+    """Where one observation is measured: membrane design, load fraction, points [mm]."""
+
+    alpha: np.ndarray  # (2,)
+    t: float
+    xy: np.ndarray  # (n, 2)
+
+
+@dataclass(frozen=True)
+class FailedRun:
+    """A parameter point whose FE simulation did not converge (a rejected step, not a crash)."""
+
+    x: np.ndarray
+    message: str
+
+
 class FEForward(ForwardModel):
-    """The FE model with every candidate effect, evaluated at the observations' designs and t.
+    """The FE model with every candidate effect, measured by DIC at the observations' points.
+
+    Evaluations return (n_obs, n_max, 3): the strain of the DIC gauge
+    (:class:`skinfem.dic.SurfaceStrainGauge`) at each observation's points, zero-padded to the
+    largest point count. A point whose simulation does not converge returns None (listed in
+    ``failures``); any other error on any rank is raised on every rank as
+    :class:`skinfem.parallel.CollectiveError`.
 
     Args:
-        config: the model configuration (that of the emulator's dataset).
-        observations: what to predict (designs alpha and load fractions t).
-        skin_bounds: (5, 2) prior box of the skin parameters (the emulator's training box).
+        config: the model configuration (mesh, element, solver) the check runs on.
+        observations: designs alpha, load fractions t and points of what to predict.
+        skin_bounds: (5, 2) prior box of the skin parameters.
+        gauge: the DIC strain window.
         increments: load increments per simulation (default: the configuration's); every
             observed t must be a multiple of 1/increments. Equilibrium does not depend on the
             path, so fewer increments give the same fields faster.
         comm: ranks to spread parameter points over; each rank runs its own serial model.
         cache_dir: folder of finished simulations to reuse and extend (None: memory only).
-            Entries are keyed by the configuration, the designs and frames and the
-            parameter vector, so a changed setup never reads stale fields.
+            Entries are keyed by the configuration, the designs, frames, points and gauge and
+            the parameter vector, so a changed setup never reads stale fields.
 
     Raises:
-        ValueError: an observed load fraction is not on the increment grid.
+        ValueError: an observed load fraction is not on the increment grid, or a point's
+            window leaves the mesh.
     """
 
-    def __init__(self, config: Config, observations: list[Observation], skin_bounds: np.ndarray,
+    def __init__(self, config: Config, observations: Sequence[PointSet], skin_bounds: np.ndarray,
                  mesh_dir: Path | str = "meshes", increments: int | None = None,
-                 comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None):
+                 comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None,
+                 gauge: StrainGauge = StrainGauge()):
+        from skinfem.mesh import ensure_mesh
         from skinfem.model import SkinModel
 
         if increments is not None:
             config = config.with_changes(solver={"increments": int(increments)})
+        # a failed point is a rejected step: give up after a few halvings, not the sweep's many
+        config = config.with_changes(solver={"max_cutbacks": min(config.solver.max_cutbacks, MAX_CUTBACKS)})
+        self.config = config
         self.names, self.bounds, self.null = parameter_space(skin_bounds, list(EFFECTS))
         self.comm = comm
-        self.model = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir, effects=list(EFFECTS))
+        on_root(comm, lambda: ensure_mesh(config, mesh_dir))  # built once, before any rank reads it
+        self.model = collective(comm, lambda: SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir,
+                                                        effects=list(EFFECTS)))
         t_grid = self.model.load_fractions()
-        designs = sorted({tuple(np.round(o.alpha, 12)) for o in observations})
-        self.designs = designs
+        self.designs = sorted({tuple(np.round(o.alpha, 12)) for o in observations})
         self.picks = []  # (design index, frame index) per observation
         for o in observations:
             k = int(np.argmin(np.abs(t_grid - o.t)))
@@ -107,13 +145,16 @@ class FEForward(ForwardModel):
                     f"observation at t = {o.t} is not on the load grid of {len(t_grid)} increments "
                     f"(t = k/{len(t_grid)}); choose increments so that t * increments is an integer"
                 )
-            self.picks.append((designs.index(tuple(np.round(o.alpha, 12))), k))
-        self.xy = self.model.strain_sampler.xy
-        self._cache: dict[bytes, np.ndarray] = {}
+            self.picks.append((self.designs.index(tuple(np.round(o.alpha, 12))), k))
+        self.counts = [len(o.xy) for o in observations]
+        self.gauges = [SurfaceStrainGauge(self.model.u, o.xy, gauge, self.model.u_ref) for o in observations]
+        self._cache: dict[bytes, np.ndarray | None] = {}
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
-        setup = f"{config.to_toml()}\n{self.names}\n{designs}\n{self.picks}\n{self.xy.tobytes().hex()}"
+        points = b"".join(np.ascontiguousarray(o.xy, float).tobytes() for o in observations)
+        setup = f"{config.to_toml()}\n{self.names}\n{self.designs}\n{self.picks}\n{gauge}\n{points.hex()}"
         self._setup_hash = hashlib.sha256(setup.encode()).hexdigest()
         self.reused = 0  # simulations read from cache_dir instead of run
+        self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
     def _simulate(self, x: np.ndarray) -> np.ndarray:
@@ -121,38 +162,57 @@ class FEForward(ForwardModel):
 
         self.model.set_effects(dict(zip(self.names[5:], map(float, x[5:]))))
         params = SkinParams.from_array(x[:5])
-        frames = [self.model.simulate(params, Design(*d)).strain for d in self.designs]
-        return np.stack([frames[j][k] for j, k in self.picks])
+        out = np.zeros((len(self.picks), max(self.counts), 3))
+        t_grid = self.model.load_fractions()
+        for j, design in enumerate(self.designs):
+            def measure(t, j=j):
+                k = int(np.argmin(np.abs(t_grid - t)))
+                for o, pick in enumerate(self.picks):
+                    if pick == (j, k):
+                        out[o, : self.counts[o]] = self.gauges[o]()
 
-    def _cache_file(self, key: bytes) -> Path:
-        return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}.npy"
+            self.model.simulate(params, Design(*design), on_frame=measure)
+        return out
 
-    def _from_disk(self, keys: list[bytes]) -> dict[bytes, np.ndarray]:
-        """Cached fields of ``keys`` (read on rank 0, shared with all)."""
+    def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
+        return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}{suffix}"
+
+    def _from_disk(self, keys: list[bytes]) -> dict[bytes, np.ndarray | None]:
+        """Cached fields (None: a cached failure) of ``keys`` (read on rank 0, shared with all)."""
         found = {}
         if self.cache_dir is not None and self.comm.rank == 0:
             for key in keys:
-                path = self._cache_file(key)
-                if path.exists():
-                    found[key] = np.load(path)
+                if self._cache_file(key).exists():
+                    found[key] = np.load(self._cache_file(key))
+                elif self._cache_file(key, ".failed").exists():
+                    found[key] = None
         return self.comm.bcast(found)
 
-    def _to_disk(self, key: bytes, fields: np.ndarray) -> None:
+    def _to_disk(self, key: bytes, fields: np.ndarray | None, message: str = "") -> None:
         if self.cache_dir is None:
             return
         self.cache_dir.mkdir(parents=True, exist_ok=True)
-        path = self._cache_file(key)
+        path = self._cache_file(key, ".npy" if fields is not None else ".failed")
         partial = path.with_suffix(f".{os.getpid()}.part")
         with open(partial, "wb") as f:
-            np.save(f, fields)
+            if fields is None:
+                f.write(message.encode())
+            else:
+                np.save(f, fields)
         partial.replace(path)  # atomic: a kill leaves either no entry or a whole one
 
-    def _simulate_and_store(self, key: bytes) -> np.ndarray:
-        fields = self._simulate(np.frombuffer(key))
-        self._to_disk(key, fields)
-        return fields
+    def _run(self, key: bytes) -> tuple[np.ndarray | None, str]:
+        """Fields of one point, or (None, why) if Newton failed; stored on disk either way."""
+        from skinfem.model import ConvergenceError
 
-    def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray]:
+        try:
+            fields, message = self._simulate(np.frombuffer(key)), ""
+        except ConvergenceError as exc:
+            fields, message = None, str(exc)
+        self._to_disk(key, fields, message)
+        return fields, message
+
+    def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
         points = [np.asarray(x, dtype=float) for x in points]
         todo = [x for x in dict.fromkeys(x.tobytes() for x in points) if x not in self._cache]
         stored = self._from_disk(todo)
@@ -160,9 +220,12 @@ class FEForward(ForwardModel):
         self.reused += len(stored) * len(self.designs)
         todo = [x for x in todo if x not in stored]
         start = time.perf_counter()
-        mine = {key: self._simulate_and_store(key) for key in todo[self.comm.rank::self.comm.size]}
+        mine = collective(self.comm, lambda: {key: self._run(key) for key in todo[self.comm.rank::self.comm.size]})
         for part in self.comm.allgather(mine):
-            self._cache.update(part)
+            for key, (fields, message) in part.items():
+                self._cache[key] = fields
+                if fields is None:
+                    self.failures.append(FailedRun(np.frombuffer(key).copy(), message))
         self.runs += len(todo) * len(self.designs)
         self.seconds += time.perf_counter() - start
         return [self._cache[x.tobytes()] for x in points]
@@ -184,6 +247,8 @@ class TaylorForward(ForwardModel):
         steps = 0.01 * np.ptp(self.bounds, axis=1) if steps is None else np.asarray(steps, float)
         eye = np.diag(steps)
         fields = base.evaluate_many([self.x0] + [self.x0 + e for e in eye] + [self.x0 - e for e in eye])
+        if any(f is None for f in fields):
+            raise ValueError("the forward model failed near the expansion point; choose another point or steps")
         p = len(self.x0)
         self.f0 = fields[0]
         self.jac = np.stack([(fields[1 + i] - fields[1 + p + i]) / (2 * steps[i]) for i in range(p)], -1)

@@ -229,3 +229,32 @@ def map_to_cells(measurement: Measurement, cells_xy: np.ndarray, max_gap: float 
 def from_measurements(paths: list[Path | str], cells_xy: np.ndarray, half_length: float) -> list[Observation]:
     """Read several measurement files and map each onto the skin cells."""
     return [map_to_cells(read_measurement(p, half_length), cells_xy) for p in paths]
+
+
+def thin(measurement: Measurement, spacing: float) -> Measurement:
+    """Keep one point (the first) per square of side ``spacing`` [mm]: DIC points closer than
+    the strain window carry little independent information, and the check's cost grows with
+    the point count (dense noise covariances)."""
+    cells = np.floor(measurement.xy / spacing).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    keep = np.sort(first)
+    sd = None if measurement.sd is None else measurement.sd[keep]
+    return Measurement(measurement.path, measurement.alpha, measurement.t, measurement.xy[keep],
+                       measurement.strain[keep], sd)
+
+
+def check_field_of_view(measurement: Measurement, membrane_half: float, band: float, n_params: int) -> None:
+    """Refuse a measurement the check cannot use: too few points, or no membrane edge in view.
+
+    Raises:
+        MeasurementError: naming the file and the problem.
+    """
+    if len(measurement.xy) <= n_params:
+        raise MeasurementError(f"{measurement.path}: {len(measurement.xy)} measured points are not more than the "
+                               f"{n_params} parameters the check calibrates")
+    ring = np.max(np.abs(measurement.xy), axis=1)
+    if not np.any(np.abs(ring - membrane_half) <= band):
+        lo, hi = measurement.xy.min(axis=0), measurement.xy.max(axis=0)
+        raise MeasurementError(
+            f"{measurement.path}: the field of view (x {lo[0]:.3g}..{hi[0]:.3g}, y {lo[1]:.3g}..{hi[1]:.3g} mm) "
+            f"contains no membrane edge (|x| or |y| = {membrane_half:g} mm): the check needs the edges")

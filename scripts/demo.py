@@ -105,7 +105,8 @@ def main() -> None:
                                        NoiseModel(np.full(3, 2e-4), 2.0, 0.3), out / "measurements", hidden, seed=1,
                                        increments=2)
         cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
-               "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2"]
+               "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2",
+               "--spacing", "2", "--no-discretisation"]  # data from the checked mesh: its model is exact
         if mpirun.exists():
             subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *cmd], check=True)
         else:

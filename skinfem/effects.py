@@ -75,6 +75,12 @@ class Effect:
         raise NotImplementedError
 
     @classmethod
+    def describe(cls, values: dict[str, float]) -> str:
+        """A sentence on estimated parameter values (keys: parameter names), for reports."""
+        units = {q.name: "" if q.unit == "-" else f" {q.unit}" for q in cls.parameters}
+        return ", ".join(f"{q.name} = {values[q.name]:.3g}{units[q.name]}" for q in cls.parameters) + "."
+
+    @classmethod
     def qualified_names(cls) -> list[str]:
         """Parameter names as used in files and on the command line: ``effect.parameter``."""
         return [f"{cls.name}.{q.name}" for q in cls.parameters]
@@ -92,6 +98,11 @@ class PreStretch(Effect):
         EffectParameter("eps_xy", "-", -0.10, 0.10, 0.0, "log pre-strain, tensor shear"),
     )
     prestressed = True
+
+    @classmethod
+    def describe(cls, values: dict[str, float]) -> str:
+        l1, l2, ang = principal_prestretch(values["eps_xx"], values["eps_yy"], values["eps_xy"])
+        return f"pre-stretch {l1:.3f} x {l2:.3f}, major axis at {ang:.0f} deg."
 
     def apply(self, terms: ModelTerms, p: dict[str, object]) -> None:
         terms.skin_prestretch = prestretch_gradient(p["eps_xx"], p["eps_yy"], p["eps_xy"])

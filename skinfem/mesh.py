@@ -15,6 +15,7 @@ Units: mm. Physical groups (cell and facet tags) are listed in :data:`TAGS`.
 from __future__ import annotations
 
 import hashlib
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,7 +139,7 @@ def build_mesh(config: Config, path: Path | str) -> MeshInfo:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.msh")
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.msh")  # processes that build the same mesh do not collide
     initialized_here = not gmsh.isInitialized()
     if initialized_here:
         gmsh.initialize(interruptible=False)

@@ -61,7 +61,7 @@ def linear_data(world, xy, values: dict[str, float], seed: int):
     for name, value in values.items():
         x[world.names.index(name)] = value
     y = world(x) + noise.sample(xy, (1,), np.random.default_rng(seed))
-    data = Data(y, np.ones((1, len(xy)), bool), xy, noise)
+    data = Data(y, np.ones((1, len(xy)), bool), xy[None], noise)
     return data, calibrate(world, data, np.zeros(len(x)), list(range(5)), max_iterations=20)
 
 
@@ -69,7 +69,7 @@ def test_whitening_makes_the_noise_model_white(grid_xy):
     noise = NoiseModel(**NOISE)
     draws = noise.sample(grid_xy, (4000,), np.random.default_rng(1))
     masks = np.ones((4000, len(grid_xy)), bool)
-    white = noise.whiten(draws, grid_xy, masks)[:, :, 0]
+    white = noise.whiten(draws, np.broadcast_to(grid_xy, (4000, *grid_xy.shape)), masks)[:, :, 0]
     cov = white.T @ white / len(white)
     assert np.abs(np.diag(cov) - 1).max() < 0.15
     assert np.abs(cov - np.diag(np.diag(cov))).max() < 0.1
@@ -97,22 +97,24 @@ def test_score_statistic_equals_the_fitted_chi2_drop_for_a_linear_model(linear_w
 
 
 def mixed_design_fe(config, mesh_dir, increments=2, cache_dir=None):
-    """The serial FE forward model (all effects) predicting the last frame of the mixed design."""
-    from inference.forward import FEForward
-    from inference.observations import Observation
+    """The serial FE forward model (all effects) predicting the last frame of the mixed design
+    on a 2 mm grid of DIC points over +-20 mm."""
+    from inference.forward import FEForward, PointSet
 
     bounds = np.array([config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
-    obs = [Observation(alpha=np.array([0.05, -0.05]), t=1.0, fields=None, mask=None)]
-    return FEForward(config, obs, bounds, mesh_dir, increments=increments, comm=MPI.COMM_SELF, cache_dir=cache_dir)
+    g = np.linspace(-20, 20, 21)
+    obs = [PointSet(alpha=np.array([0.05, -0.05]), t=1.0, xy=np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
+    fe = FEForward(config, obs, bounds, mesh_dir, increments=increments, comm=MPI.COMM_SELF, cache_dir=cache_dir)
+    return fe, obs[0].xy
 
 
 @pytest.fixture(scope="module")
 def taylor_at_truth(small_config, mesh_dir):
     """First-order expansion of the FE model (all effects) about the truth: one design."""
-    fe = mixed_design_fe(small_config, mesh_dir)
+    fe, xy = mixed_design_fe(small_config, mesh_dir)
     x0 = fe.null.copy()
     x0[:5] = TRUTH.as_array()
-    return TaylorForward(fe, x0), fe.xy
+    return TaylorForward(fe, x0), xy
 
 
 def test_no_effect_is_reported_on_noise_only_data(taylor_at_truth):
@@ -124,7 +126,7 @@ def test_no_effect_is_reported_on_noise_only_data(taylor_at_truth):
     alarms, structured = 0, 0
     for _ in range(60):
         y = forward.f0 + noise.sample(xy, (1,), rng)
-        data = Data(y, np.ones((1, len(xy)), bool), xy, noise)
+        data = Data(y, np.ones((1, len(xy)), bool), xy[None], noise)
         cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
         d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
         structured += d.metrics["structured"]
@@ -143,14 +145,19 @@ def test_linearised_fe_model_is_accurate_near_its_expansion_point(taylor_at_trut
 
 @pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
 def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, mesh_dir, tmp_path):
+    """The checked model's own discretisation with a hidden pre-stretch, measured at a scattered
+    DIC point cloud with holes: the power of the diagnosis when the model is exact (the check
+    runs without its discretisation estimate; tests/test_check_independent.py checks data made
+    by another discretisation)."""
     from inference.synthetic import synthetic_measurements
 
     noise = NoiseModel(**NOISE)
     files = synthetic_measurements(small_config, TRUTH, [(0.05, 0.05), (0.05, -0.05)], noise, tmp_path / "m",
                                    PRESTRETCH, seed=5, mesh_dir=mesh_dir, increments=2)
-    res = skinid("check", "--emulator", small_emulator, "--measurement", *files, "--out", tmp_path / "report",
-                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--add", "pre_stretch", "--increments", 2,
-                 "--confirm", 1, "--mesh-dir", mesh_dir, ranks=2)
+    command = ("check", "--emulator", small_emulator, "--measurement", *files, "--out", tmp_path / "report",
+               "--noise-length", 2.0, "--noise-nugget", 0.3, "--add", "pre_stretch", "--increments", 2,
+               "--confirm", 1, "--mesh-dir", mesh_dir, "--spacing", 2.0, "--no-discretisation")
+    res = skinid(*command, ranks=2)
     assert res.returncode == 0, res.stderr[-3000:]
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     base, final = report["versions"][0], report["versions"][-1]
@@ -178,9 +185,7 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     assert "Most likely missing: pre_stretch" in res.stdout
 
     # a rerun (as after a kill) reads every FE run from report/fe_runs and reaches the same result
-    res = skinid("check", "--emulator", small_emulator, "--measurement", *files, "--out", tmp_path / "report",
-                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--add", "pre_stretch", "--increments", 2,
-                 "--confirm", 1, "--mesh-dir", mesh_dir, ranks=2)
+    res = skinid(*command, ranks=2)
     assert res.returncode == 0, res.stderr[-3000:]
     again = json.loads((tmp_path / "report" / "report.json").read_text())
     t = again["timings"]
@@ -195,19 +200,19 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
 def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
     """FEForward's disk cache: a new instance reads finished points without simulating; another
     setup (increments) does not see them; no partial files are left."""
-    first = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
+    first, _ = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
     points = [first.null, first.null + 0.1 * np.ptp(first.bounds, axis=1)]
     fields = first.evaluate_many(points)
     assert first.runs == 2 and first.reused == 0
     assert len(list(tmp_path.glob("*.npy"))) == 2 and not list(tmp_path.glob("*.part"))
 
-    again = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
+    again, _ = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
     again._simulate = lambda x: pytest.fail("a cached point was simulated again")
     for a, b in zip(again.evaluate_many(points), fields):
         np.testing.assert_array_equal(a, b)
     assert again.runs == 0 and again.reused == 2
 
-    other = mixed_design_fe(small_config, mesh_dir, increments=1, cache_dir=tmp_path)
+    other, _ = mixed_design_fe(small_config, mesh_dir, increments=1, cache_dir=tmp_path)
     other.evaluate_many(points[:1])
     assert other.runs == 1 and other.reused == 0
 

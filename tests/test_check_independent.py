@@ -1,0 +1,52 @@
+"""``skinid check`` on measurements its own model did not make.
+
+The data come from quadratic (Q2) elements on a mesh graded differently from the checked one
+(far size 4 mm instead of 6, 3 muscle layers instead of 2), measured like DIC (1 mm strain
+window) at a jittered point cloud with three holes in a field of view of +-18 mm, with
+spatially correlated noise; one membrane (the mixed design) to keep the suite short. The check runs on the ``small`` preset (Q1), whose discretisation
+error it estimates with a uniformly refined Q1 mesh: neither is the data's discretisation.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from inference.criticism import NoiseModel
+from skinfem.params import SkinParams
+from tests.cli_helpers import MPIRUN, skinid
+
+TRUTH = SkinParams(0.0012, 0.017, 11.0, 0.285, 30.0)
+NOISE = dict(sd=np.full(3, 1e-3), length=2.0, nugget=0.3)  # DIC-like: 1000 microstrain, 2 mm correlation
+
+
+def independent_measurements(small_config, mesh_dir, out, seed, effects=None):
+    from inference.synthetic import dic_points, synthetic_measurements
+
+    config = small_config.with_changes(mesh={"h_far": 4.0, "muscle_layers": 3},
+                                       solver={"element_degree": 2, "quadrature_degree": 4})
+    points = dic_points(18.0, 1.0, np.random.default_rng(seed))
+    return synthetic_measurements(config, TRUTH, [(0.05, -0.05)], NoiseModel(**NOISE), out, effects,
+                                  seed=seed, mesh_dir=mesh_dir, increments=2, points=points)
+
+
+@pytest.mark.slow
+@pytest.mark.mpi
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_path):
+    """No hidden effect: the Q1 check mesh is far from the Q2 data (its error is many noise sd),
+    and the check says so instead of inventing a missing effect."""
+    files = independent_measurements(small_config, mesh_dir, tmp_path / "m", seed=11)
+    res = skinid("check", "--config", "small", "--measurement", *files, "--out", tmp_path / "report",
+                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--increments", 2, "--confirm", 1,
+                 "--spacing", 2.0, "--mesh-dir", mesh_dir, ranks=2)
+    assert res.returncode == 0, res.stderr[-3000:]
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    disc = report["discretisation"]
+    assert disc["sigma"] > 2 and not disc["resolved"]
+    assert "exceeds the noise" in report["verdict"] and "h_membrane <=" in report["verdict"]
+    assert not any(c["explains"] for c in report["candidates"])
+    assert "no missing effect is needed" in report["verdict"]
+    assert report["failed_runs"] == []

@@ -1,0 +1,130 @@
+"""Failed FE runs are information, not crashes; an error on one MPI rank ends every rank at once;
+bad measurements get one clear line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from inference.criticism import Data, NoiseModel, calibrate
+from inference.forward import ForwardModel
+from inference.observations import write_measurement
+from tests.cli_helpers import MPIRUN, skinid, skinid_env
+
+
+class FailingForward(ForwardModel):
+    """fields = A tanh(x), but no solution (None) where x[0] > limit: a model with a failure region."""
+
+    def __init__(self, A, limit):
+        self.A, self.limit = A, limit
+        self.names = [f"p{i}" for i in range(A.shape[1])]
+        self.bounds = np.array([[-5.0, 5.0]] * A.shape[1])
+        self.null = np.zeros(A.shape[1])
+
+    def evaluate_many(self, points):
+        self.runs += len(points)
+        return [None if x[0] > self.limit else (self.A @ np.tanh(x)).reshape(1, -1, 3) for x in points]
+
+
+def test_failed_runs_are_rejected_steps_and_the_fit_still_converges():
+    """From a flat start the first Gauss-Newton step overshoots into the failure region: it is
+    recorded and shortened, and the fit reaches the least-squares optimum (scipy's, started at
+    the truth), which lies outside that region."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-20, 20, (60, 2))
+    A = rng.normal(size=(180, 5)) * 1e-3
+    truth = np.array([0.8, -0.6, 0.5, 0.3, -0.4])
+    noise = NoiseModel(np.full(3, 1e-5), 0.0, 0.0)
+    y = (A @ np.tanh(truth)).reshape(1, -1, 3) + noise.sample(xy, (1,), rng)
+    data = Data(y, np.ones((1, 60), bool), xy[None], noise)
+    forward = FailingForward(A, limit=1.2)
+    cal = calibrate(forward, data, np.array([-2.5, 0, 0, 0, 0]), list(range(5)), max_iterations=60)
+    expected = least_squares(lambda x: A @ np.tanh(x) - y.ravel(), truth, xtol=1e-14, ftol=1e-14).x
+    assert cal.x == pytest.approx(expected, abs=1e-4)
+    assert cal.rejected and all(x[0] > 1.2 for x in cal.rejected)
+
+
+def _measurement(path, extent=20.0, step=2.0):
+    g = np.arange(-extent, extent + 1e-9, step)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    return write_measurement(path, xy, np.zeros((len(xy), 3)), (0.05, -0.05), 1.0, np.full((len(xy), 3), 1e-3))
+
+
+@pytest.mark.parametrize("problem, expected", [
+    ("outside", "lies outside the block"),
+    ("no_edge", "contains no membrane edge"),
+    ("nan", "NaN or infinite value"),
+    ("few", "4 measured points are not more than the 5 parameters"),
+    ("no_mesh", "give the mesh to check on with --config"),
+])
+def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path):
+    path = _measurement(tmp_path / "m.csv")
+    text = path.read_text().splitlines()
+    if problem == "outside":
+        text[-1] = "30,0,0,0,0,0.001,0.001,0.001"
+    elif problem == "no_edge":
+        path = _measurement(tmp_path / "m.csv", extent=4.0, step=1.0)
+        text = path.read_text().splitlines()
+    elif problem == "nan":
+        text[-1] = "0,0,nan,0,0,0.001,0.001,0.001"
+    elif problem == "few":
+        text = text[:6] + [f"{x},{y},0,0,0,0.001,0.001,0.001" for x, y in ((10, 10), (10, -10), (-10, 10), (9, 10))]
+    path.write_text("\n".join(text) + "\n")
+    config = [] if problem == "no_mesh" else ["--config", "small"]
+    res = skinid("check", *config, "--measurement", path, "--out", tmp_path / "report")
+    assert res.returncode == 2
+    assert expected in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert not (tmp_path / "report").exists()
+
+
+DRIVER = """
+import sys
+from mpi4py import MPI
+import inference.check, inference.forward
+from inference.__main__ import main
+
+def fail_on_rank_1(*args, **kwargs):
+    if MPI.COMM_WORLD.rank == 1:
+        raise {error}("forced failure")
+    return original(*args, **kwargs)
+
+original = {target}
+{patch} = fail_on_rank_1
+sys.exit(main(["check", "--config", "small", "--measurement", "{measurement}", "--out", "{out}",
+               "--mesh-dir", "{mesh_dir}", "--increments", "1", "--no-discretisation"]))
+"""
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+@pytest.mark.parametrize("where", ["simulation", "uncaught"])
+def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path):
+    """A simulation error on rank 1 is agreed (both ranks end with one line, exit 2); any other
+    exception on rank 1 aborts the job while rank 0 waits in a collective."""
+    measurement = _measurement(tmp_path / "m.csv")
+    if where == "simulation":
+        target = patch = "inference.forward.FEForward._simulate"
+        error = "RuntimeError"
+    else:
+        target = patch = "inference.check.spread_start"
+        error = "RuntimeError"
+    script = tmp_path / "driver.py"
+    script.write_text(textwrap.dedent(DRIVER.format(error=error, target=target, patch=patch,
+                                                    measurement=measurement, out=tmp_path / "report",
+                                                    mesh_dir=mesh_dir)))
+    start = time.perf_counter()
+    res = subprocess.run([MPIRUN, "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=300, env=skinid_env())
+    seconds = time.perf_counter() - start
+    lines = [line for line in res.stderr.splitlines() if "error" in line]
+    assert res.returncode != 0 and len(lines) == 1, res.stderr[-2000:]
+    assert "rank 1" in lines[0] and "forced failure" in lines[0]
+    assert seconds < 120
+    assert not (tmp_path / "report" / "report.md").exists()
