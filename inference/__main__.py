@@ -54,7 +54,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                                              "(default: the emulator's dataset configuration)")
         parser.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
                                                           "(default: the best of 5 spread points)")
-        parser.add_argument("--out", type=Path, required=True, help="report directory (its fe_runs/ keeps finished FE runs: rerunning resumes)")
+        parser.add_argument("--out", type=Path, required=True,
+                            help="report directory (its fe_runs/ keeps finished FE runs: rerunning resumes)")
         parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
                             help="measurement noise sd per component [strain] (default: the files' sd columns)")
         parser.add_argument("--noise-length", type=float, default=0.0,

@@ -573,7 +573,8 @@ def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[
         scores.sort(key=lambda s: -s.delta_bic)
     for s in scores:
         s.explains = metrics["structured"] and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
-    return Diagnosis(metrics, regions, scores, fits, verdict(metrics, scores, regions, mesh_resolved), forward.runs - runs0,
+    text = verdict(metrics, scores, regions, mesh_resolved)
+    return Diagnosis(metrics, regions, scores, fits, text, forward.runs - runs0,
                      time.perf_counter() - start)
 
 

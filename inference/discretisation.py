@@ -81,13 +81,14 @@ class DiscretisationError:
 
     def summary(self) -> str:
         text = (f"Discretisation error of the check's mesh ({self.mesh}) at the calibrated parameters: "
-                f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS (two-mesh estimate with {self.refined}); "
+                f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS "
+                f"(two-mesh estimate with {self.refined}); "
                 f"the model is corrected by the refined mesh and its remaining error ({self.sigma / 2:.1f} sigma) is "
                 "carried next to the noise.")
         if not self.resolved:
             text += (f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
-                     f"Under first-order convergence a mesh with h_membrane <= {self.suggested_h():.2g} mm would resolve "
-                     "it; quadratic elements (solver.element_degree = 2) converge faster (see docs/criticism.md).")
+                     f"Under first-order convergence a mesh with h_membrane <= {self.suggested_h():.2g} mm "
+                     "would resolve it; quadratic elements (solver.element_degree = 2) converge faster (see docs/criticism.md).")
         return text
 
 

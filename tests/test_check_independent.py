@@ -3,7 +3,8 @@
 The data come from quadratic (Q2) elements on a mesh graded differently from the checked one
 (far size 4 mm instead of 6, 3 muscle layers instead of 2), measured like DIC (1 mm strain
 window) at a jittered point cloud with three holes in a field of view of +-18 mm, with
-spatially correlated noise; one membrane (the mixed design) to keep the suite short. The check runs on the ``small`` preset (Q1), whose discretisation
+spatially correlated noise; one membrane (the mixed design) to keep the suite short. The
+check runs on the ``small`` preset (Q1), whose discretisation
 error it estimates with a uniformly refined Q1 mesh: neither is the data's discretisation.
 """
 

@@ -128,3 +128,28 @@ def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path)
     assert "rank 1" in lines[0] and "forced failure" in lines[0]
     assert seconds < 120
     assert not (tmp_path / "report" / "report.md").exists()
+
+
+@pytest.mark.slow
+def test_box_corners_converge_or_are_rejected_cleanly(small_config, mesh_dir):
+    """Every corner of the prior box that the calibration can reach, with every effect at a
+    prior bound, returns fields or None (a recorded failure), never an exception."""
+    from mpi4py import MPI
+
+    from inference.forward import FEForward, PointSet
+
+    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    g = np.linspace(-18, 18, 13)
+    obs = [PointSet(np.array([0.05, -0.05]), 1.0, np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
+    fe = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF)
+    rng = np.random.default_rng(0)
+    corners = []
+    for _ in range(6):
+        x = np.where(rng.random(len(fe.names)) < 0.5, fe.bounds[:, 0], fe.bounds[:, 1])
+        corners.append(x)
+    soft = fe.null.copy()  # soft skin, stiff isotropic fibers: Newton's hardest corner seen so far
+    soft[:5] = [bounds[0, 0], bounds[1, 1], bounds[2, 0], bounds[3, 1], 30.0]
+    fields = fe.evaluate_many(corners + [soft])
+    assert all(f is None or np.all(np.isfinite(f)) for f in fields)
+    assert len(fe.failures) == sum(f is None for f in fields)
+    assert all("Newton failed" in failure.message for failure in fe.failures)
