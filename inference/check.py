@@ -163,7 +163,7 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
         fine = FEForward(refined_config(forward.config), measurements, skin_bounds, mesh_dir, None, comm, cache_dir,
                          settings.gauge)
         disc = estimate(forward, fine, baseline.x, data)
-        model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd)
+        model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd(data.xy, data.masks))
         baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
         timings["refined_fe_runs"], timings["refined_s"] = fine.runs, disc.seconds
     timings["compare_s"], timings["compare_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0

@@ -124,6 +124,12 @@ def failure_lines(result: CheckResult) -> list[str]:
                     for f in result.failures] + [""]
 
 
+def _write_atomically(path: Path, text: str) -> None:
+    partial = path.with_suffix(path.suffix + ".part")
+    partial.write_text(text)
+    partial.replace(path)
+
+
 def _fmt(value: float) -> str:
     return f"{value:.4g}"
 
@@ -205,8 +211,8 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
               f"{result.fe_seconds_per_run:.2f} s per FE run; {t['fe_runs_read_from_cache']} runs read from "
               f"the cache of an earlier run (`fe_runs/`).", ""]
     path = out / "report.md"
-    path.write_text("\n".join(lines))
-    (out / "report.json").write_text(json.dumps(report_dict(result), indent=2) + "\n")
+    _write_atomically(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
+    _write_atomically(path, "\n".join(lines))  # last: a report.md means a complete report
     return path
 
 

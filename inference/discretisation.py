@@ -9,8 +9,8 @@ of the surface strain (Q1 near the membrane's edges and corners) the error of f_
 - **corrects** its model by the shift (:class:`CorrectedForward`: f_h(x') + shift for every
   x', a two-level correction that treats the shift as constant near x), so that it compares
   at the refined mesh's accuracy, and
-- **carries** the remaining error, sd = |shift| per point and component, as an independent
-  model-form variance next to the noise (:attr:`inference.criticism.Data.model_sd`), so that a
+- **carries** the remaining error, sd = the local RMS of the shift (within h of the point) per
+  component, as an independent model-form variance next to the noise (:attr:`inference.criticism.Data.model_sd`), so that a
   residual the mesh explains is not called a missing effect.
 
 If the refined mesh's error is still above the noise, the report says so and names the mesh
@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from inference.forward import ForwardModel
 from skinfem.config import Config
@@ -65,10 +66,19 @@ class DiscretisationError:
     sigma: float
     seconds: float
 
-    @property
-    def sd(self) -> np.ndarray:
-        """(n_obs, n_pts, 3) sd of the corrected model's remaining error: |shift|."""
-        return np.abs(self.shift)
+    def sd(self, xy: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        """(n_obs, n_pts, 3) sd of the corrected model's remaining error: the local RMS of the
+        shift within ``h_membrane`` of each point (xy (n_obs, n_pts, 2), masks (n_obs, n_pts)).
+
+        A local envelope, not |shift| itself: the shift changes sign where the two meshes' fields
+        cross, and there |shift| ~ 0 would claim an exact model."""
+        out = np.zeros_like(self.shift)
+        for o, m in enumerate(masks):
+            points = xy[o, m]
+            near = cKDTree(points).query_ball_point(points, r=self.h_membrane)
+            squares = self.shift[o, m] ** 2
+            out[o, m] = np.sqrt([squares[i].mean(axis=0) for i in near])
+        return out
 
     @property
     def resolved(self) -> bool:
