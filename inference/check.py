@@ -21,7 +21,9 @@ from inference.criticism import (
     Data,
     Diagnosis,
     NoiseModel,
+    NoiseStatement,
     calibrate,
+    check_noise_statement,
     diagnose,
     extend,
     rank_regions,
@@ -92,6 +94,7 @@ class CheckResult:
     versions: list[Version]
     diagnosis: Diagnosis
     discretisation: DiscretisationError | None
+    noise_statement: NoiseStatement
     failures: list[FailedRun]
     start: np.ndarray
     start_from: str
@@ -166,6 +169,7 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
         model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd(data.xy, data.masks))
         baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
         timings["refined_fe_runs"], timings["refined_s"] = fine.runs, disc.seconds
+    baseline, data, noise_statement = check_noise_statement(model, baseline, data, settings.max_iterations // 2)
     timings["compare_s"], timings["compare_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
     diagnosis = diagnose(model, baseline, data, settings.candidates, half, band, settings.confirm,
                          mesh_resolved=disc is None or disc.resolved,
@@ -186,11 +190,11 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     timings["add_s"], timings["add_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
     timings["add_reused_from_diagnose_s"], timings["add_reused_from_diagnose_fe_runs"] = reused_s, reused_runs
     timings["fe_runs_read_from_cache"] = forward.reused
-    if disc is not None:
-        diagnosis.text = disc.summary() + " " + diagnosis.text
+    diagnosis.text = " ".join(part for part in (disc.summary() if disc else "", noise_statement.summary(noise.sd),
+                                                 diagnosis.text) if part)
     return CheckResult(
         data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
-        versions=versions, diagnosis=diagnosis, discretisation=disc, failures=forward.failures, start=start,
+        versions=versions, diagnosis=diagnosis, discretisation=disc, noise_statement=noise_statement, failures=forward.failures, start=start,
         start_from="emulator's posterior mode" if emulator is not None else "best of 5 spread points",
         gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
                     f"(one per {settings.spacing:g} mm square)"),

@@ -147,7 +147,8 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     error_falls_plot(result, out / "error_falls.png")
     d, base = result.diagnosis, result.versions[0].metrics
     lines = ["# Model criticism report", "",
-             f"{len(result.observations)} observation(s), {result.data.n} data values; stated noise sd "
+             f"{len(result.observations)} observation(s), {result.data.n} data values; noise sd "
+             f"{'(estimated, see the verdict) ' if not result.noise_statement.consistent else ''}"
              f"{', '.join(f'{s:.2g}' for s in result.data.noise.sd)} (xx, yy, xy), correlation length "
              f"{result.data.noise.length:g} mm, uncorrelated share {result.data.noise.nugget:g}.", "",
              "## Verdict", "", d.text, "",
@@ -229,6 +230,8 @@ def report_dict(result: CheckResult) -> dict:
             "mesh": result.discretisation.mesh, "refined": result.discretisation.refined,
             "relative": result.discretisation.relative, "sigma": result.discretisation.sigma,
             "resolved": result.discretisation.resolved, "suggested_h_membrane_mm": result.discretisation.suggested_h()},
+        "noise_statement": {"consistent": result.noise_statement.consistent, "factor": result.noise_statement.factor,
+                            "used_sd": result.data.noise.sd.tolist()},
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
         "regions": d.regions,
         "candidates": [dict(vars(s)) for s in d.scores],

@@ -46,6 +46,7 @@ from skinfem.effects import get_effect
 STRONG_EVIDENCE = 6.0  # Delta BIC above which a candidate is reported (Kass & Raftery: strong)
 MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess residual
 ALPHA = 0.01  # posterior-predictive p below which the residual is "structured" (not noise)
+NOISE_STRUCTURE_Z = 3.0  # |Moran z| below which a residual has the stated noise's spatial structure
 CHI2_TOLERANCE = 1e-3  # a calibration stops once a step lowers chi^2 by less than this
 
 
@@ -429,6 +430,45 @@ def rank_regions(cal: Calibration, data: Data, half: float, band: float) -> list
             total[1] += int(sel.sum())
     out = [{"region": name, "points": n, "rms_sigma": math.sqrt(ss / n)} for name, (ss, n) in sums.items() if n]
     return sorted(out, key=lambda r: -r["rms_sigma"])
+
+
+@dataclass
+class NoiseStatement:
+    """Whether the stated noise sd is consistent with the residual (:func:`check_noise_statement`)."""
+
+    consistent: bool
+    factor: float  # estimated sd / stated sd (1 when consistent)
+    moran_z: float
+    chi2_per_dof: float
+
+    def summary(self, stated: np.ndarray) -> str:
+        if self.consistent:
+            return ""
+        estimated = ", ".join(f"{v:.2g}" for v in self.factor * stated)
+        return (f"The stated noise is inconsistent with the residual: it is {self.factor:.1f}x larger than stated "
+                f"(chi^2/dof = {self.chi2_per_dof:.2f}) but has the stated noise's spatial structure (Moran's I "
+                f"z = {self.moran_z:.1f}); the check continues with the estimated sd {estimated} (xx, yy, xy) "
+                "instead of looking for a missing effect in it (give --noise-sd to state it).")
+
+
+def check_noise_statement(forward: ForwardModel, cal: Calibration, data: Data,
+                          max_iterations: int = 6) -> tuple[Calibration, Data, NoiseStatement]:
+    """Is a structured residual only noise larger than stated?
+
+    Moran's I does not depend on the residual's scale: a residual that is larger than the
+    stated noise (PPC p < ALPHA) but whose spatial autocorrelation is that of the stated noise
+    model (|z| < NOISE_STRUCTURE_Z) is read as understated noise, not as missing physics
+    (missing effects are smooth fields: large z). The noise sd is then scaled by
+    sqrt(chi^2/dof) and the calibration repeated with it.
+    """
+    metrics = residual_metrics(cal, data)
+    statement = NoiseStatement(True, 1.0, metrics["moran_z"], metrics["chi2_per_dof"])
+    if not metrics["structured"] or abs(metrics["moran_z"]) >= NOISE_STRUCTURE_Z:
+        return cal, data, statement
+    statement.consistent, statement.factor = False, math.sqrt(metrics["chi2_per_dof"])
+    noise = NoiseModel(data.noise.sd * statement.factor, data.noise.length, data.noise.nugget)
+    data = Data(data.fields, data.masks, data.xy, noise, data.model_sd)
+    return calibrate(forward, data, cal.x, cal.free, cal.label, max_iterations), data, statement
 
 
 # -- diagnosis -------------------------------------------------------------------------------

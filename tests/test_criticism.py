@@ -135,6 +135,33 @@ def test_no_effect_is_reported_on_noise_only_data(taylor_at_truth):
     assert structured <= 6  # the PPC flags ~1 % of pure-noise residuals
 
 
+def test_understated_noise_is_reported_not_explained_by_an_effect(taylor_at_truth):
+    """(g) Noise twice the stated sd: the check says so, estimates it (within 15 %) and finds no
+    effect; control: a real pre-stretch at the stated noise is not mistaken for noise."""
+    from inference.criticism import check_noise_statement
+
+    forward, xy = taylor_at_truth
+    stated = NoiseModel(**NOISE)
+    true = NoiseModel(2 * stated.sd, stated.length, stated.nugget)
+    rng = np.random.default_rng(7)
+    start = forward.x0 + np.concatenate([0.05 * np.ptp(forward.bounds[:5], axis=1), np.zeros(len(forward.x0) - 5)])
+    mask = np.ones((1, len(xy)), bool)
+    data = Data(forward.f0 + true.sample(xy, (1,), rng), mask, xy[None], stated)
+    cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
+    cal, data, statement = check_noise_statement(forward, cal, data)
+    assert not statement.consistent and statement.factor == pytest.approx(2.0, rel=0.15)
+    d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
+    assert d.best is None and not d.metrics["structured"]
+
+    x = forward.x0.copy()
+    for name, value in PRESTRETCH.items():
+        x[forward.names.index(name)] = value
+    data = Data(forward(x) + stated.sample(xy, (1,), rng), mask, xy[None], stated)
+    cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
+    _, _, statement = check_noise_statement(forward, cal, data)
+    assert statement.consistent and abs(statement.moran_z) > 3
+
+
 def test_linearised_fe_model_is_accurate_near_its_expansion_point(taylor_at_truth):
     """The Taylor model must reproduce FE at a nearby point (2 % of the prior box away)."""
     forward, _ = taylor_at_truth
