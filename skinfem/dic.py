@@ -86,6 +86,32 @@ def surface_log_strain(H: np.ndarray, H_ref: np.ndarray | None = None) -> np.nda
     return np.stack([E[:, 0, 0], E[:, 1, 1], E[:, 0, 1]], axis=1)
 
 
+def surface_log_strain_derivative(H: np.ndarray, dH: np.ndarray, H_ref: np.ndarray | None = None,
+                                  dH_ref: np.ndarray | None = None) -> np.ndarray:
+    """Directional derivative (n, 3) of :func:`surface_log_strain` along dH (and dH_ref).
+
+    Exact: dF = dH A^-1 - F dA A^-1 with A = I + H_ref (in plane), dC = dF^T F + F^T dF, and the
+    derivative of the matrix logarithm by the Daleckii-Krein formula
+    d ln C = V [(V^T dC V) o L] V^T, L_ij = (ln w_i - ln w_j)/(w_i - w_j) (1/w_i if equal).
+    """
+    A_inv = np.broadcast_to(np.eye(2), (len(H), 2, 2))
+    if H_ref is not None:
+        A_inv = np.linalg.inv(np.eye(2) + H_ref[:, :2, :])
+    F = (H + np.eye(3, 2)) @ A_inv
+    dF = dH @ A_inv
+    if dH_ref is not None:
+        dF = dF - F @ dH_ref[:, :2, :] @ A_inv
+    C = np.swapaxes(F, -1, -2) @ F
+    dC = np.swapaxes(dF, -1, -2) @ F + np.swapaxes(F, -1, -2) @ dF
+    w, v = np.linalg.eigh(C)
+    lw = np.log(w)
+    gap = w[:, :, None] - w[:, None, :]
+    close = np.abs(gap) <= 1e-12 * w[:, :, None]
+    L = np.where(close, 1 / w[:, :, None], (lw[:, :, None] - lw[:, None, :]) / np.where(close, 1.0, gap))
+    dE = 0.5 * v @ ((np.swapaxes(v, -1, -2) @ dC @ v) * L) @ np.swapaxes(v, -1, -2)
+    return np.stack([dE[:, 0, 0], dE[:, 1, 1], dE[:, 0, 1]], axis=1)
+
+
 class SurfaceStrainGauge:
     """DIC strain at fixed surface points from a displacement Function (serial meshes).
 
@@ -128,3 +154,10 @@ class SurfaceStrainGauge:
         """(n, 3) log strain (xx, yy, xy) at the points."""
         H_ref = None if self.u_ref is None else self._gradient(self.u_ref)
         return surface_log_strain(self._gradient(self.u), H_ref)
+
+    def derivative(self, du, du_ref=None) -> np.ndarray:
+        """(n, 3) change of the measured strain per unit change du of u (and du_ref of u_ref),
+        at the current state (Functions on the same space, e.g. displacement sensitivities)."""
+        H_ref = None if self.u_ref is None else self._gradient(self.u_ref)
+        dH_ref = None if du_ref is None else self._gradient(du_ref)
+        return surface_log_strain_derivative(self._gradient(self.u), self._gradient(du), H_ref, dH_ref)

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from skinfem.dic import StrainGauge, SurfaceStrainGauge, fit_gradient, surface_log_strain, window_offsets
+from skinfem.dic import (
+    StrainGauge,
+    SurfaceStrainGauge,
+    fit_gradient,
+    surface_log_strain,
+    surface_log_strain_derivative,
+    window_offsets,
+)
 
 
 def homogeneous_log_strain(F: np.ndarray) -> np.ndarray:
@@ -92,3 +99,22 @@ def test_fit_and_log_strain_closed_forms():
     np.testing.assert_allclose(surface_log_strain(h)[0], 1e-7 * np.array([1.0, -1.0, 1.25]), rtol=1e-6)
     with pytest.raises(ValueError, match="window must be > 0"):
         StrainGauge(0.0)
+
+
+@pytest.mark.parametrize("with_reference", [False, True])
+def test_log_strain_derivative_equals_central_differences(with_reference):
+    """Daleckii-Krein derivative against central differences of the closed form (step 1e-6),
+    including a repeated eigenvalue (equibiaxial C)."""
+    rng = np.random.default_rng(3)
+    H = 0.1 * rng.normal(size=(6, 3, 2))
+    H[0] = [[0.05, 0], [0, 0.05], [0, 0]]  # C = (1.05)^2 I: equal eigenvalues
+    dH = rng.normal(size=H.shape)
+    H_ref = 0.05 * rng.normal(size=H.shape) if with_reference else None
+    dH_ref = rng.normal(size=H.shape) if with_reference else None
+    h = 1e-6
+
+    def at(s):
+        return surface_log_strain(H + s * dH, None if H_ref is None else H_ref + s * dH_ref)
+
+    expected = (at(h) - at(-h)) / (2 * h)
+    np.testing.assert_allclose(surface_log_strain_derivative(H, dH, H_ref, dH_ref), expected, atol=1e-8)
