@@ -228,6 +228,7 @@ class _UnitBoxProblem:
         self.lo, self.span = forward.bounds[free, 0], np.ptp(forward.bounds[free], axis=1)
         self.base = np.asarray(x0, dtype=float).copy()
         self.rejected: list[np.ndarray] = []
+        self.fields: dict[bytes, np.ndarray] = {}  # model fields of evaluated z (no rerun at the end)
 
     def point(self, z: np.ndarray) -> np.ndarray:
         x = self.base.copy()
@@ -238,13 +239,29 @@ class _UnitBoxProblem:
         """Stacked whitened residuals (n,) at each z; None (and recorded) where FE failed."""
         points = [self.point(z) for z in zs]
         out = []
-        for x, fields in zip(points, self.forward.evaluate_many(points)):
+        for z, x, fields in zip(zs, points, self.forward.evaluate_many(points)):
             if fields is None:
                 self.rejected.append(x)
                 out.append(None)
             else:
+                self.fields[z.tobytes()] = fields
                 out.append(stack(self.data.whitened_residual(fields), self.data.masks))
         return out
+
+    def evaluate(self, z: np.ndarray, step: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Residual r (n,) and Jacobian d r / d z (n, k) at z: exact in one run when the forward
+        model has derivatives, else the Jacobian is left to :meth:`jacobian` (None)."""
+        if not self.forward.exact_jacobian:
+            return self.residuals([z])[0], None
+        x = self.point(z)
+        (result,) = self.forward.evaluate_with_jacobian([x], [self.forward.names[i] for i in self.free])
+        if result is None:
+            self.rejected.append(x)
+            return None, None
+        fields, derivative = result
+        self.fields[z.tobytes()] = fields
+        J = np.stack([-self.data.whiten(derivative[..., i]) * s for i, s in enumerate(self.span)], 1)
+        return stack(self.data.whitened_residual(fields), self.data.masks), J
 
     def jacobian(self, z: np.ndarray, r0: np.ndarray, step: float) -> np.ndarray:
         """(n, k) one-sided differences d r / d z; the other side where a run failed (0 if both)."""
@@ -265,10 +282,11 @@ def calibrate(forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int]
     Levenberg–Marquardt in the unit box of the prior (steps projected onto the box). A trial
     point where the FE model does not converge is a rejected step: the damping grows (the
     step shrinks), the point is recorded in ``Calibration.rejected`` and the fit continues.
-    Jacobians are forward differences of ``step`` in the unit box (one run per free parameter,
-    spread over MPI ranks by the forward model). The fit stops once a step lowers chi^2 by less
-    than ``CHI2_TOLERANCE`` (the Jacobian of that step's start is kept for the covariance) or
-    after ``max_iterations`` trial steps. Returns the Laplace posterior at the optimum.
+    Jacobians are exact when the forward model has derivatives (forward sensitivities: one
+    run per trial point), else forward differences of ``step`` in the unit box (one run per
+    free parameter, spread over MPI ranks by the forward model). The fit stops once a step
+    lowers chi^2 by less than ``CHI2_TOLERANCE`` or after ``max_iterations`` trial steps.
+    Returns the Laplace posterior at the optimum.
 
     Raises:
         CalibrationError: the model does not converge at the starting point.
@@ -276,28 +294,31 @@ def calibrate(forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int]
     start, runs0 = time.perf_counter(), forward.runs
     problem = _UnitBoxProblem(forward, data, x0, free)
     z = np.clip((problem.base[free] - problem.lo) / problem.span, 0, 1)
-    (r,) = problem.residuals([z])
+    r, J = problem.evaluate(z, step)
     if r is None:
         raise CalibrationError(f"the FE model does not converge at the starting point {problem.point(z)}")
-    J, damping = problem.jacobian(z, r, step), 1e-3
+    J, damping = problem.jacobian(z, r, step) if J is None else J, 1e-3
     for _ in range(max_iterations):
         A, g = J.T @ J, J.T @ r
         dz = np.linalg.solve(A + damping * np.diag(np.diag(A) + 1e-12 * np.trace(A)), -g)
         z_new = np.clip(z + dz, 0, 1)
         if np.max(np.abs(z_new - z)) < 1e-8:
             break
-        (r_new,) = problem.residuals([z_new])
+        r_new, J_new = problem.evaluate(z_new, step)
         if r_new is None or r_new @ r_new >= r @ r:  # failed run or no decrease: a shorter step
             damping *= 10 if r_new is None else 4
             continue
         decrease = r @ r - r_new @ r_new
         z, r, damping = z_new, r_new, damping / 3
+        if J_new is not None:
+            J = J_new
         if decrease < CHI2_TOLERANCE:  # chi^2 no longer moves by a statistically visible amount
             break
-        J = problem.jacobian(z, r, step)
+        if J_new is None:
+            J = problem.jacobian(z, r, step)
     x = problem.point(z)
     cov = np.linalg.pinv(J.T @ J, rcond=1e-12) * np.outer(problem.span, problem.span)
-    fields = forward(x)
+    fields = problem.fields[z.tobytes()]
     return Calibration(
         names=list(forward.names), x=x, free=list(free), cov=cov, model_fields=fields,
         whitened=data.whitened_residual(fields), jac=-J / problem.span, fe_runs=forward.runs - runs0,
@@ -506,12 +527,19 @@ class CandidateScore:
 
 def signatures(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str],
                rel_step: float = 0.02) -> dict[str, np.ndarray]:
-    """Whitened signatures (n, dim phi) of each effect: differences of the model at ``cal.x``.
+    """Whitened signatures (n, dim phi) of each effect: derivatives of the model at ``cal.x``.
 
-    Each parameter is moved ``rel_step`` of its prior range both ways, clipped to the range
+    Exact (forward sensitivities, one run) when the forward model has derivatives. Otherwise
+    each parameter is moved ``rel_step`` of its prior range both ways, clipped to the range
     (a null value on a bound gives a one-sided difference); a side whose FE run failed is
     replaced by the calibrated point itself; if both fail the column is zero.
     """
+    if forward.exact_jacobian:
+        names = [q for name in effects for q in get_effect(name).qualified_names()]
+        (result,) = forward.evaluate_with_jacobian([cal.x], names)
+        if result is not None:
+            columns = iter(data.whiten(result[1][..., i]) for i in range(len(names)))
+            return {name: np.stack([next(columns) for _ in get_effect(name).parameters], 1) for name in effects}
     jobs = []  # (effect, parameter index, low value, high value)
     for name in effects:
         for i in forward.index(get_effect(name).qualified_names()):

@@ -134,5 +134,13 @@ class CorrectedForward(ForwardModel):
     def runs(self) -> int:
         return self.base.runs
 
+    @property
+    def exact_jacobian(self) -> bool:
+        return self.base.exact_jacobian
+
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
         return [None if f is None else f + self.shift for f in self.base.evaluate_many(points)]
+
+    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
+                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        return [None if r is None else (r[0] + self.shift, r[1]) for r in self.base.evaluate_with_jacobian(points, names)]

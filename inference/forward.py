@@ -34,21 +34,29 @@ from skinfem.config import PARAM_NAMES, Config
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
 from skinfem.parallel import collective, on_root
+from skinfem.sensitivity import DisplacementSensitivity
 
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 
 
 class ForwardModel:
-    """Interface: ``names``, ``bounds`` (p, 2), ``null`` (p,) and ``evaluate_many``."""
+    """Interface: ``names``, ``bounds`` (p, 2), ``null`` (p,) and ``evaluate_many``; models with
+    exact derivatives also implement ``evaluate_with_jacobian`` (``exact_jacobian = True``)."""
 
     names: list[str]
     bounds: np.ndarray
     null: np.ndarray
     runs: int = 0
+    exact_jacobian: bool = False
 
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
         """Fields (n_obs, n_points, 3) at each parameter vector (p,); None where it failed."""
+        raise NotImplementedError
+
+    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
+                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """(fields, d fields / d x[names] (n_obs, n_points, 3, k)) at each point; None where it failed."""
         raise NotImplementedError
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -116,7 +124,13 @@ class FEForward(ForwardModel):
     Raises:
         ValueError: an observed load fraction is not on the increment grid, or a point's
             window leaves the mesh.
+
+    ``evaluate_with_jacobian`` adds exact derivatives by any parameters: forward sensitivities
+    (:mod:`skinfem.sensitivity`) of the state and of the pre-stressed reference, measured by the
+    linearised DIC gauge — one simulation per point instead of one per parameter.
     """
+
+    exact_jacobian = True
 
     def __init__(self, config: Config, observations: Sequence[PointSet], skin_bounds: np.ndarray,
                  mesh_dir: Path | str = "meshes", increments: int | None = None,
@@ -148,6 +162,7 @@ class FEForward(ForwardModel):
             self.picks.append((self.designs.index(tuple(np.round(o.alpha, 12))), k))
         self.counts = [len(o.xy) for o in observations]
         self.gauges = [SurfaceStrainGauge(self.model.u, o.xy, gauge, self.model.u_ref) for o in observations]
+        self.sensitivity = DisplacementSensitivity(self.model)
         self._cache: dict[bytes, np.ndarray | None] = {}
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         points = b"".join(np.ascontiguousarray(o.xy, float).tobytes() for o in observations)
@@ -157,21 +172,32 @@ class FEForward(ForwardModel):
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
-    def _simulate(self, x: np.ndarray) -> np.ndarray:
+    def _simulate(self, x: np.ndarray, names: tuple[str, ...] = ()) -> np.ndarray:
+        """(n_obs, n_max, 3, 1 + k): the fields, then their exact derivatives by ``names``."""
         from skinfem.params import Design, SkinParams
 
         self.model.set_effects(dict(zip(self.names[5:], map(float, x[5:]))))
         params = SkinParams.from_array(x[:5])
-        out = np.zeros((len(self.picks), max(self.counts), 3))
+        out = np.zeros((len(self.picks), max(self.counts), 3, 1 + len(names)))
         t_grid = self.model.load_fractions()
+        reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference
+
+        def at_reference():
+            if names:
+                reference[:] = self.sensitivity(names)
+
         for j, design in enumerate(self.designs):
             def measure(t, j=j):
                 k = int(np.argmin(np.abs(t_grid - t)))
-                for o, pick in enumerate(self.picks):
-                    if pick == (j, k):
-                        out[o, : self.counts[o]] = self.gauges[o]()
+                observed = [o for o, pick in enumerate(self.picks) if pick == (j, k)]
+                du = self.sensitivity(names) if observed and names else []
+                for o in observed:
+                    gauge, n = self.gauges[o], self.counts[o]
+                    out[o, :n, :, 0] = gauge()
+                    for i, (d, d_ref) in enumerate(zip(du, reference)):
+                        out[o, :n, :, 1 + i] = gauge.derivative(d, d_ref)
 
-            self.model.simulate(params, Design(*design), on_frame=measure)
+            self.model.simulate(params, Design(*design), on_frame=measure, on_reference=at_reference)
         return out
 
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
@@ -202,33 +228,53 @@ class FEForward(ForwardModel):
         partial.replace(path)  # atomic: a kill leaves either no entry or a whole one
 
     def _run(self, key: bytes) -> tuple[np.ndarray | None, str]:
-        """Fields of one point, or (None, why) if Newton failed; stored on disk either way."""
+        """Fields (and derivatives) of one point, or (None, why) if Newton failed; stored on
+        disk either way."""
         from skinfem.model import ConvergenceError
 
+        x, names = self._decode(key)
         try:
-            fields, message = self._simulate(np.frombuffer(key)), ""
+            fields, message = self._simulate(x, names), ""
         except ConvergenceError as exc:
             fields, message = None, str(exc)
         self._to_disk(key, fields, message)
         return fields, message
 
-    def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
-        points = [np.asarray(x, dtype=float) for x in points]
-        todo = [x for x in dict.fromkeys(x.tobytes() for x in points) if x not in self._cache]
+    @staticmethod
+    def _encode(x: np.ndarray, names: Sequence[str]) -> bytes:
+        return np.asarray(x, dtype=float).tobytes() + "|".join(names).encode()
+
+    def _decode(self, key: bytes) -> tuple[np.ndarray, tuple[str, ...]]:
+        n = 8 * len(self.names)
+        text = key[n:].decode()
+        return np.frombuffer(key[:n]), tuple(text.split("|")) if text else ()
+
+    def _evaluate(self, points: Sequence[np.ndarray], names: Sequence[str]) -> list[np.ndarray | None]:
+        """Cached, rank-spread simulations: (n_obs, n_max, 3, 1 + k) per point, None if failed."""
+        keys = [self._encode(x, names) for x in points]
+        todo = [key for key in dict.fromkeys(keys) if key not in self._cache]
         stored = self._from_disk(todo)
         self._cache.update(stored)
         self.reused += len(stored) * len(self.designs)
-        todo = [x for x in todo if x not in stored]
+        todo = [key for key in todo if key not in stored]
         start = time.perf_counter()
         mine = collective(self.comm, lambda: {key: self._run(key) for key in todo[self.comm.rank::self.comm.size]})
         for part in self.comm.allgather(mine):
             for key, (fields, message) in part.items():
                 self._cache[key] = fields
                 if fields is None:
-                    self.failures.append(FailedRun(np.frombuffer(key).copy(), message))
+                    self.failures.append(FailedRun(self._decode(key)[0].copy(), message))
         self.runs += len(todo) * len(self.designs)
         self.seconds += time.perf_counter() - start
-        return [self._cache[x.tobytes()] for x in points]
+        return [self._cache[key] for key in keys]
+
+    def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
+        return [None if f is None else f[..., 0] for f in self._evaluate(points, ())]
+
+    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
+                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        self.index(names)  # validates the names
+        return [None if f is None else (f[..., 0], f[..., 1:]) for f in self._evaluate(points, tuple(names))]
 
 
 class TaylorForward(ForwardModel):
@@ -253,6 +299,13 @@ class TaylorForward(ForwardModel):
         self.f0 = fields[0]
         self.jac = np.stack([(fields[1 + i] - fields[1 + p + i]) / (2 * steps[i]) for i in range(p)], -1)
 
+    exact_jacobian = True
+
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray]:
         self.runs += len(points)
         return [self.f0 + self.jac @ (np.asarray(x, float) - self.x0) for x in points]
+
+    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
+                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+        columns = self.jac[..., self.index(names)]
+        return [(fields, columns) for fields in self.evaluate_many(points)]

@@ -290,11 +290,13 @@ class SkinModel:
         params: SkinParams,
         design: Design,
         on_frame: Callable[[float], None] | None = None,
+        on_reference: Callable[[], None] | None = None,
     ) -> StrainFrames:
         """Ramp the membrane eigen-strain and return the skin log strain at every frame.
 
         ``on_frame(t)`` is called (collectively) after each frame converged, e.g. to write
-        ParaView fields.
+        ParaView fields; ``on_reference()`` after the unloaded equilibrium of a pre-stressed
+        model converged (e.g. for its sensitivities).
 
         Raises:
             ConvergenceError: an increment failed after ``solver.max_cutbacks`` halvings.
@@ -312,6 +314,8 @@ class SkinModel:
             if not converged:
                 raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
             self.u_ref.x.array[:] = x
+            if on_reference is not None:
+                on_reference()
         targets = self.load_fractions()
         base_step = targets[0]
         t, step = 0.0, base_step

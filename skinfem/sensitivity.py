@@ -42,43 +42,43 @@ class DisplacementSensitivity:
 
     Args:
         model: the model; call after a converged solve (e.g. in ``simulate``'s ``on_frame``).
-        names: skin parameters (``mu, k1, k2, kappa, theta``) and qualified effect parameters
-            of the model (``"muscle_stiffness.log_factor"``), in the order of the result.
 
-    Units: du/dp in mm per unit of p (MPa, -, per degree for theta).
+    Parameters are named like the forward models' vectors: skin parameters (``mu, k1, k2,
+    kappa, theta``) and qualified effect parameters (``"muscle_stiffness.log_factor"``). The
+    form of each is compiled on its first use. Units: du/dp in mm per unit of p (MPa, -, per
+    degree for theta).
     """
 
-    def __init__(self, model, names: Sequence[str]):
-        self.model, self.names = model, list(names)
+    def __init__(self, model):
+        self.model = model
         mesh = model.mesh
         self._da0 = dolfinx.fem.Constant(mesh, np.zeros(3, dtype=PETSc.ScalarType))
-        skin = dict(zip(PARAM_NAMES, (model.mu, model.k1, model.k2, model.kappa, model.a0)))
-        v = ufl.TestFunction(model.V)
-        forms = []
-        for name in self.names:
-            if name == "theta":
-                d_energy = energy_derivative(model.energy, model.a0, self._da0)
-            elif name in skin:
-                d_energy = energy_derivative(model.energy, skin[name])
-            elif name in model.effect_constants:
-                d_energy = energy_derivative(model.energy, model.effect_constants[name])
-            else:
-                known = ", ".join([*PARAM_NAMES, *model.effect_constants])
-                raise ValueError(f"no sensitivity for '{name}'; this model has: {known}")
-            forms.append(dolfinx.fem.form(ufl.derivative(d_energy, model.u, v), jit_options=JIT_OPTIONS))
-        self._forms = forms
+        self._constants = dict(zip(PARAM_NAMES, (model.mu, model.k1, model.k2, model.kappa, model.a0)))
+        self._constants.update(model.effect_constants)
+        self._forms: dict[str, dolfinx.fem.Form] = {}
         self._K = dolfinx.fem.petsc.create_matrix(model.problem.J)
         self._ksp = PETSc.KSP().create(mesh.comm)
-        self._ksp.setOperators(self._K)
         self._ksp.setType("preonly")
         pc = self._ksp.getPC()
         pc.setType("lu")
         pc.setFactorSolverType("mumps")
         self._rhs = dolfinx.fem.petsc.create_vector(model.V)
 
-    def __call__(self) -> list:
+    def _form(self, name: str):
+        """The compiled form dR/dp of parameter ``name`` (cached)."""
+        if name not in self._forms:
+            if name not in self._constants:
+                raise ValueError(f"no sensitivity for '{name}'; this model has: {', '.join(self._constants)}")
+            direction = self._da0 if name == "theta" else None
+            d_energy = energy_derivative(self.model.energy, self._constants[name], direction)
+            v = ufl.TestFunction(self.model.V)
+            self._forms[name] = dolfinx.fem.form(ufl.derivative(d_energy, self.model.u, v), jit_options=JIT_OPTIONS)
+        return self._forms[name]
+
+    def __call__(self, names: Sequence[str]) -> list:
         """One displacement-sensitivity Function per name, at the model's current state."""
         model = self.model
+        forms = [self._form(name) for name in names]
         a0 = model.a0.value
         self._da0.value[:] = (-a0[1] * math.pi / 180, a0[0] * math.pi / 180, 0.0)
         self._K.zeroEntries()
@@ -86,7 +86,7 @@ class DisplacementSensitivity:
         self._K.assemble()
         self._ksp.setOperators(self._K)  # a new factorisation for the new tangent
         out = []
-        for form in self._forms:
+        for form in forms:
             with self._rhs.localForm() as local:
                 local.set(0.0)
             dolfinx.fem.petsc.assemble_vector(self._rhs, form)

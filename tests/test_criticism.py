@@ -234,7 +234,7 @@ def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
     assert len(list(tmp_path.glob("*.npy"))) == 2 and not list(tmp_path.glob("*.part"))
 
     again, _ = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
-    again._simulate = lambda x: pytest.fail("a cached point was simulated again")
+    again._simulate = lambda *args: pytest.fail("a cached point was simulated again")
     for a, b in zip(again.evaluate_many(points), fields):
         np.testing.assert_array_equal(a, b)
     assert again.runs == 0 and again.reused == 2
