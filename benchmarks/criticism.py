@@ -12,7 +12,8 @@ effect, or one hidden effect (pre-stretch 1.08 x 1.02 at 30 deg, muscle 2x stiff
 thicker). Each (case, seed) is one ``skinid check`` with the discretisation estimate and the
 true effect added as a version (``--add``), so that the RMSE after adding it is measured too.
 
-Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``; a rerun skips them.
+Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``; a rerun skips them,
+and ``--summarise`` tabulates the finished ones without running more.
 Writes the confusion table (true effect vs verdict), the true effect's rank, RMSE before and
 after adding it, seconds and FE runs to benchmarks/results/criticism.json. Recorded, not asserted.
 """
@@ -104,13 +105,15 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("out/criticism_bench"))
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
+    parser.add_argument("--summarise", action="store_true", help="only tabulate the finished checks")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     points = dic_points(18.0, 1.0, np.random.default_rng(0))
     config = data_config(load_config(args.config))
     rows = []
     for case in args.cases:
-        todo = [s for s in range(args.seeds) if not (args.out / f"{case}_{s}" / "row.json").exists()]
+        todo = [] if args.summarise else [s for s in range(args.seeds)
+                                          if not (args.out / f"{case}_{s}" / "row.json").exists()]
         fields = None
         if todo and comm.rank == 0:
             fields = measured_fields(config, SkinParams(*TRUTH), DESIGNS, points, hidden_effects()[case],
