@@ -164,7 +164,7 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     lines += discretisation_lines(result) + failure_lines(result)
     lines += [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(figures["baseline"])]
     lines += ["", "## 2. Where the model fails", "",
-              "RMS of (measured − model) / sd over each region's cells (noise alone gives 1):", "",
+              "RMS of (measured − model) / sd over each region's points (noise and carried model error alone give 1):", "",
               "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
     lines += [f"| {i + 1} | {g['region']} | {g['points']} | {g['rms_sigma']:.2f} |" for i, g in enumerate(d.regions)]
     lines += ["", "![regions](regions.png)", "", "## 3. Which effect is missing", "",
