@@ -127,9 +127,9 @@ def main() -> None:
         for row in rows:
             confusion.setdefault(row["case"], {}).setdefault(row["verdict"], 0)
             confusion[row["case"]][row["verdict"]] += 1
-        RESULTS.write_text(json.dumps({"command": "mpirun -n 2 python benchmarks/criticism.py " +
-                                       " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()
-                                                if k in ("config", "seeds")),
+        command = (f"mpirun -n 2 python benchmarks/criticism.py --config {args.config} --cases {' '.join(args.cases)} "
+                   f"--seeds {args.seeds}")
+        RESULTS.write_text(json.dumps({"command": command,
                                        "checked_config": args.config, "data": "Q2, h 2/4 mm, 3 muscle layers",
                                        "noise": {"sd": NOISE["sd"].tolist(), "length_mm": 2.0, "nugget": 0.3},
                                        "confusion": confusion, "rows": rows}, indent=2) + "\n")
