@@ -194,8 +194,8 @@ class FEForward(ForwardModel):
                 for o in observed:
                     gauge, n = self.gauges[o], self.counts[o]
                     out[o, :n, :, 0] = gauge()
-                    for i, (d, d_ref) in enumerate(zip(du, reference)):
-                        out[o, :n, :, 1 + i] = gauge.derivative(d, d_ref)
+                    for i, derivative in enumerate(gauge.derivatives(du, reference)):
+                        out[o, :n, :, 1 + i] = derivative
 
             self.model.simulate(params, Design(*design), on_frame=measure, on_reference=at_reference)
         return out

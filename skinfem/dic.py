@@ -155,9 +155,13 @@ class SurfaceStrainGauge:
         H_ref = None if self.u_ref is None else self._gradient(self.u_ref)
         return surface_log_strain(self._gradient(self.u), H_ref)
 
-    def derivative(self, du, du_ref=None) -> np.ndarray:
+    def derivatives(self, dus, du_refs=None) -> list[np.ndarray]:
         """(n, 3) change of the measured strain per unit change du of u (and du_ref of u_ref),
-        at the current state (Functions on the same space, e.g. displacement sensitivities)."""
+        for each pair, at the current state (Functions on the same space, e.g. displacement
+        sensitivities). The state's gradients are computed once for all pairs."""
+        H = self._gradient(self.u)
         H_ref = None if self.u_ref is None else self._gradient(self.u_ref)
-        dH_ref = None if du_ref is None else self._gradient(du_ref)
-        return surface_log_strain_derivative(self._gradient(self.u), self._gradient(du), H_ref, dH_ref)
+        du_refs = [None] * len(dus) if du_refs is None else du_refs
+        return [surface_log_strain_derivative(H, self._gradient(du), H_ref,
+                                              None if du_ref is None else self._gradient(du_ref))
+                for du, du_ref in zip(dus, du_refs, strict=True)]
