@@ -9,10 +9,11 @@ Two implementations share this interface:
   every candidate effect of :mod:`skinfem.effects` (at their null values it *is* the
   baseline), on any mesh, measured at the observations' points by the DIC operator of
   :mod:`skinfem.dic`. It runs one simulation per distinct membrane design and picks the
-  observed load fractions. ``evaluate_many`` spreads independent parameter points over MPI ranks (each rank
-  owns a serial model); results are cached by parameter vector, in memory and, with
-  ``cache_dir``, on disk (one ``.npy`` per point, written atomically as soon as it is
-  computed), so a killed check resumes without repeating finished simulations.
+  observed load fractions. Simulations (one per parameter point and design) are spread over
+  MPI ranks, each rank owning a serial model, so that even a single point's designs run in
+  parallel; results are cached by parameter vector, in memory and, with
+  ``cache_dir``, on disk (one ``.npy`` per point, written atomically once its batch of
+  simulations is done), so a killed check resumes without repeating finished simulations.
 - :class:`TaylorForward`: the first-order Taylor expansion of another forward model about a
   point (exact for linear effects, microseconds per call): the fast emulator the false-alarm
   study runs thousands of criticism passes on.
@@ -116,7 +117,8 @@ class FEForward(ForwardModel):
         increments: load increments per simulation (default: the configuration's); every
             observed t must be a multiple of 1/increments. Equilibrium does not depend on the
             path, so fewer increments give the same fields faster.
-        comm: ranks to spread parameter points over; each rank runs its own serial model.
+        comm: ranks to spread simulations (parameter points x designs) over; each rank runs
+            its own serial model.
         cache_dir: folder of finished simulations to reuse and extend (None: memory only).
             Entries are keyed by the configuration, the designs, frames, points and gauge and
             the parameter vector, so a changed setup never reads stale fields.
@@ -172,12 +174,12 @@ class FEForward(ForwardModel):
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
-    def _simulate(self, x: np.ndarray, names: tuple[str, ...] = ()) -> np.ndarray:
-        """(n_obs, n_max, 3, 1 + k): the fields, then their exact derivatives by ``names``."""
+    def _simulate(self, x: np.ndarray, names: tuple[str, ...], j: int) -> np.ndarray:
+        """(n_obs, n_max, 3, 1 + k): the fields of the observations of design ``j``, then their
+        exact derivatives by ``names``; zero for the other designs' observations."""
         from skinfem.params import Design, SkinParams
 
         self.model.set_effects(dict(zip(self.names[5:], map(float, x[5:]))))
-        params = SkinParams.from_array(x[:5])
         out = np.zeros((len(self.picks), max(self.counts), 3, 1 + len(names)))
         t_grid = self.model.load_fractions()
         reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference
@@ -186,18 +188,18 @@ class FEForward(ForwardModel):
             if names:
                 reference[:] = self.sensitivity(names)
 
-        for j, design in enumerate(self.designs):
-            def measure(t, j=j):
-                k = int(np.argmin(np.abs(t_grid - t)))
-                observed = [o for o, pick in enumerate(self.picks) if pick == (j, k)]
-                du = self.sensitivity(names) if observed and names else []
-                for o in observed:
-                    gauge, n = self.gauges[o], self.counts[o]
-                    out[o, :n, :, 0] = gauge()
-                    for i, derivative in enumerate(gauge.derivatives(du, reference)):
-                        out[o, :n, :, 1 + i] = derivative
+        def measure(t):
+            k = int(np.argmin(np.abs(t_grid - t)))
+            observed = [o for o, pick in enumerate(self.picks) if pick == (j, k)]
+            du = self.sensitivity(names) if observed and names else []
+            for o in observed:
+                gauge, n = self.gauges[o], self.counts[o]
+                out[o, :n, :, 0] = gauge()
+                for i, derivative in enumerate(gauge.derivatives(du, reference)):
+                    out[o, :n, :, 1 + i] = derivative
 
-            self.model.simulate(params, Design(*design), on_frame=measure, on_reference=at_reference)
+        self.model.simulate(SkinParams.from_array(x[:5]), Design(*self.designs[j]), on_frame=measure,
+                            on_reference=at_reference)
         return out
 
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
@@ -227,18 +229,16 @@ class FEForward(ForwardModel):
                 np.save(f, fields)
         partial.replace(path)  # atomic: a kill leaves either no entry or a whole one
 
-    def _run(self, key: bytes) -> tuple[np.ndarray | None, str]:
-        """Fields (and derivatives) of one point, or (None, why) if Newton failed; stored on
-        disk either way."""
+    def _run(self, key: bytes, j: int) -> tuple[np.ndarray | None, str]:
+        """Design ``j``'s part of one point (see :meth:`_simulate`), or (None, why) if Newton
+        failed."""
         from skinfem.model import ConvergenceError
 
         x, names = self._decode(key)
         try:
-            fields, message = self._simulate(x, names), ""
+            return self._simulate(x, names, j), ""
         except ConvergenceError as exc:
-            fields, message = None, str(exc)
-        self._to_disk(key, fields, message)
-        return fields, message
+            return None, str(exc)
 
     @staticmethod
     def _encode(x: np.ndarray, names: Sequence[str]) -> bytes:
@@ -258,12 +258,18 @@ class FEForward(ForwardModel):
         self.reused += len(stored) * len(self.designs)
         todo = [key for key in todo if key not in stored]
         start = time.perf_counter()
-        mine = collective(self.comm, lambda: {key: self._run(key) for key in todo[self.comm.rank::self.comm.size]})
-        for part in self.comm.allgather(mine):
-            for key, (fields, message) in part.items():
-                self._cache[key] = fields
-                if fields is None:
-                    self.failures.append(FailedRun(self._decode(key)[0].copy(), message))
+        units = [(key, j) for key in todo for j in range(len(self.designs))]  # one simulation each
+        mine = collective(self.comm, lambda: {u: self._run(*u) for u in units[self.comm.rank::self.comm.size]})
+        parts = {u: result for part in self.comm.allgather(mine) for u, result in part.items()}
+        for key in todo:
+            results = [parts[key, j] for j in range(len(self.designs))]
+            failed = [message for fields, message in results if fields is None]
+            fields = None if failed else sum(f for f, _ in results)  # each design fills its observations
+            self._cache[key] = fields
+            if failed:
+                self.failures.append(FailedRun(self._decode(key)[0].copy(), failed[0]))
+            if self.comm.rank == 0:
+                self._to_disk(key, fields, failed[0] if failed else "")
         self.runs += len(todo) * len(self.designs)
         self.seconds += time.perf_counter() - start
         return [self._cache[key] for key in keys]

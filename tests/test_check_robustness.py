@@ -153,3 +153,44 @@ def test_box_corners_converge_or_are_rejected_cleanly(small_config, mesh_dir):
     assert all(f is None or np.all(np.isfinite(f)) for f in fields)
     assert len(fe.failures) == sum(f is None for f in fields)
     assert all("Newton failed" in failure.message for failure in fe.failures)
+
+
+SPREAD_DRIVER = """
+import numpy as np
+from mpi4py import MPI
+import skinfem.model
+from inference.forward import FEForward, PointSet
+from skinfem.config import load_config
+
+calls = []
+original = skinfem.model.SkinModel.simulate
+skinfem.model.SkinModel.simulate = lambda self, *a, **k: calls.append(1) or original(self, *a, **k)
+xy = np.array([[9.0, 3.0], [11.0, -6.0], [-14.0, 2.0]])
+obs = [PointSet(np.array(alpha), 1.0, xy) for alpha in ((0.05, 0.05), (0.05, -0.05))]
+bounds = np.array([[2e-4, 2e-3], [1e-3, 0.05], [1.0, 20.0], [0.0, 0.3], [-90.0, 90.0]])
+config = load_config("small")
+spread = FEForward(config, obs, bounds, "{mesh_dir}", increments=1, comm=MPI.COMM_WORLD)
+x = np.concatenate([[1.2e-3, 0.017, 11.0, 0.285, 30.0], spread.null[5:]])
+fields, jacobian = spread.evaluate_with_jacobian([x], spread.names[:2])[0]
+counts = MPI.COMM_WORLD.gather(len(calls))
+if MPI.COMM_WORLD.rank == 0:
+    serial = FEForward(config, obs, bounds, "{mesh_dir}", increments=1, comm=MPI.COMM_SELF)
+    f, j = serial.evaluate_with_jacobian([x], serial.names[:2])[0]
+    print("COUNTS", counts, "DIFF", np.abs(f - fields).max(), np.abs(j - jacobian).max(), np.abs(f).max())
+"""
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+def test_one_points_designs_are_spread_over_ranks(mesh_dir, tmp_path):
+    """A single parameter point with two designs runs one simulation on each rank, and the
+    gathered fields and Jacobian equal a serial evaluation's."""
+    script = tmp_path / "spread.py"
+    script.write_text(SPREAD_DRIVER.format(mesh_dir=mesh_dir))
+    res = subprocess.run([MPIRUN, "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=300, env=skinid_env())
+    line = next(line for line in res.stdout.splitlines() if line.startswith("COUNTS"))
+    counts, diffs = line.split("DIFF")
+    assert counts.split(None, 1)[1].strip() == "[1, 1]"
+    diff_fields, diff_jacobian, scale = map(float, diffs.split())
+    assert scale > 1e-3 and diff_fields <= 1e-12 * scale and diff_jacobian <= 1e-9
