@@ -1,6 +1,6 @@
 """Convergence of what the check compares: the DIC surface strain at scattered points.
 
-    python benchmarks/dic_convergence.py [--out benchmarks/results/dic_convergence.json]
+    python benchmarks/dic_convergence.py [meshes | refinements | edge] [--out benchmarks/results/dic_convergence.json]
 
 One material (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), the mixed design
 (0.05, -0.05) at t = 1, measured by the DIC operator (1 mm window) at a DIC-like point cloud
@@ -9,6 +9,12 @@ under the membrane / far (mm), skin layers s, muscle layers m, Q1 or Q2 elements
 is compared with the finest (Q2, 2/3 mm, s2, m4): relative RMS difference over all points and
 in bands of max(|x|, |y|) (under the membrane < 8 mm, the edge band 8-12 mm, far field
 > 12 mm). Seconds: the second simulation of a model (forms compiled, mesh cached), 1 rank.
+
+``refinements``: from the quadratic check mesh (Q2, 2/6 mm, s2 m2), how much the field moves
+when only the layers through the thickness are doubled and when only the in-plane sizes are
+halved — which refinement a two-mesh estimate of its error must make (seconds: one
+simulation). ``edge``: series refined only at the membrane edge (``mesh.h_edge``), each field
+compared with the previous one in its series. The parts are merged into the same file.
 Numbers are recorded, not asserted.
 """
 
@@ -31,24 +37,33 @@ MESHES = [  # (degree, h_membrane, h_far, skin_layers, muscle_layers)
 ]
 
 
+EDGE_SERIES = [  # (degree, h_membrane, h_far, skin_layers, muscle_layers, h_edge)
+    [(2, 2, 6, 2, 2, 0.0), (2, 2, 6, 2, 2, 1.0), (2, 2, 6, 2, 2, 0.5)],
+    [(1, 2, 6, 2, 2, 0.0), (1, 2, 6, 2, 2, 0.5), (1, 2, 6, 2, 2, 0.25), (1, 2, 6, 4, 4, 0.25)],
+]
+REFINEMENTS = {"base": (2, 2, 6, 2, 2), "layers doubled": (2, 2, 6, 4, 4), "in-plane halved": (2, 1, 3, 2, 2)}
+
+
 def label(mesh) -> str:
-    degree, hm, hf, s, m = mesh
-    return f"Q{degree} {hm:g}/{hf:g} mm, s{s} m{m}"
+    degree, hm, hf, s, m, *edge = mesh
+    return f"Q{degree} {hm:g}/{hf:g} mm, s{s} m{m}" + (f", edge {edge[0]:g} mm" if edge and edge[0] else "")
 
 
-def measure(mesh, xy, mesh_dir) -> tuple[np.ndarray, float, int]:
+def measure(mesh, xy, mesh_dir, warm: bool = True) -> tuple[np.ndarray, float, int]:
+    """DIC strain (n, 3) at xy, seconds of one simulation (after a first one if ``warm``), dofs."""
     from skinfem.config import load_config
     from skinfem.dic import StrainGauge, SurfaceStrainGauge
     from skinfem.model import SkinModel
     from skinfem.params import Design, SkinParams
 
-    degree, hm, hf, s, m = mesh
+    degree, hm, hf, s, m, *edge = mesh
     config = load_config("small").with_changes(
-        mesh={"h_membrane": hm, "h_far": hf, "skin_layers": s, "muscle_layers": m},
+        mesh={"h_membrane": hm, "h_far": hf, "skin_layers": s, "muscle_layers": m, "h_edge": edge[0] if edge else 0.0},
         solver={"increments": 2, "element_degree": degree, "quadrature_degree": 2 * degree})
     model = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir)
     gauge = SurfaceStrainGauge(model.u, xy, StrainGauge(1.0))
-    model.simulate(SkinParams(*PARAMS), Design(0.05, -0.05))
+    if warm:
+        model.simulate(SkinParams(*PARAMS), Design(0.05, -0.05))
     start = time.perf_counter()
     model.simulate(SkinParams(*PARAMS), Design(0.05, -0.05))
     return gauge(), time.perf_counter() - start, model.n_dofs
@@ -58,13 +73,75 @@ def main() -> None:
     from inference.synthetic import dic_points
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("part", nargs="?", choices=["meshes", "refinements", "edge"], default="meshes")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "dic_convergence.json")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     args = parser.parse_args()
     xy = dic_points(20.0, 1.0, np.random.default_rng(0))
+    result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if args.part == "refinements":
+        result["refinements"] = refinements(xy, args.mesh_dir)
+    elif args.part == "edge":
+        result["edge"] = edge_series(xy, args.mesh_dir)
+    else:
+        result.update(meshes(xy, args.mesh_dir))
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+
+
+def band_changes(field, previous, xy) -> dict[str, float]:
+    """Relative RMS of field - previous, over all points and per band."""
+    diff, ring = field - previous, np.max(np.abs(xy), axis=1)
+    out = {"all points": float(np.sqrt(np.mean(diff**2) / np.mean(previous**2)))}
+    for band, (lo, hi) in BANDS.items():
+        sel = (ring >= lo) & (ring < hi)
+        out[band] = float(np.sqrt(np.mean(diff[sel] ** 2) / np.mean(previous[sel] ** 2)))
+    return out
+
+
+def edge_series(xy, mesh_dir) -> dict:
+    """Each mesh of EDGE_SERIES against the previous one of its series."""
+    series = []
+    for meshes in EDGE_SERIES:
+        rows, previous = [], None
+        for mesh in meshes:
+            field, seconds, dofs = measure(mesh, xy, mesh_dir, warm=False)
+            row = {"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 1)}
+            if previous is not None:
+                row["change_from_previous"] = band_changes(field, previous, xy)
+            rows.append(row)
+            previous = field
+            print(row, flush=True)
+        series.append(rows)
+    return {"command": "python benchmarks/dic_convergence.py edge", "series": series}
+
+
+def refinements(xy, mesh_dir) -> dict:
+    """How far each one-directional refinement of the Q2 check mesh moves the field."""
+    fields, seconds = {}, {}
+    for name, mesh in REFINEMENTS.items():
+        fields[name], seconds[name], _ = measure(mesh, xy, mesh_dir, warm=False)
+        print(name, seconds[name], flush=True)
+    base = fields["base"]
+    ring = np.max(np.abs(xy), axis=1)
+    rows = []
+    for name in list(REFINEMENTS)[1:]:
+        diff = fields[name] - base
+        row = {"refinement": name, "mesh": label(REFINEMENTS[name]), "seconds": round(seconds[name], 1),
+               "relative_rms_change": float(np.sqrt(np.mean(diff**2) / np.mean(base**2)))}
+        for band, (lo, hi) in BANDS.items():
+            sel = (ring >= lo) & (ring < hi)
+            row[band] = float(np.sqrt(np.mean(diff[sel] ** 2) / np.mean(base[sel] ** 2)))
+        rows.append(row)
+        print(row, flush=True)
+    return {"command": "python benchmarks/dic_convergence.py refinements", "base": label(REFINEMENTS["base"]),
+            "base_seconds": round(seconds["base"], 1), "rows": rows}
+
+
+def meshes(xy, mesh_dir) -> dict:
+    """Every mesh of MESHES against the finest."""
     fields, rows = {}, []
     for mesh in MESHES:
-        fields[mesh], seconds, dofs = measure(mesh, xy, args.mesh_dir)
+        fields[mesh], seconds, dofs = measure(mesh, xy, mesh_dir)
         rows.append({"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 2)})
         print(rows[-1], flush=True)
     reference = fields[MESHES[-1]]
@@ -76,12 +153,11 @@ def main() -> None:
         for name, (lo, hi) in BANDS.items():
             sel = (ring >= lo) & (ring < hi)
             row[name] = float(np.sqrt(np.mean(diff[sel] ** 2) / np.mean(reference[sel] ** 2)))
-    result = {"command": "python benchmarks/dic_convergence.py", "points": len(xy), "window_mm": 1.0,
-              "reference": label(MESHES[-1]), "field_rms": float(np.sqrt(np.mean(reference**2))), "meshes": rows}
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
     for row in rows:
         print(f"{row['mesh']:>20}: {row['relative_rms_vs_finest']:.3f} "
               + " ".join(f"{row[b]:.3f}" for b in BANDS) + f"  {row['seconds']} s, {row['dofs']} dofs")
+    return {"command": "python benchmarks/dic_convergence.py", "points": len(xy), "window_mm": 1.0,
+            "reference": label(MESHES[-1]), "field_rms": float(np.sqrt(np.mean(reference**2))), "meshes": rows}
 
 
 if __name__ == "__main__":

@@ -196,7 +196,7 @@ def cmd_noise(args) -> None:
 
 def check_inputs(args):
     """Settings, configuration, prior box, emulator, measurements and noise of ``skinid check``."""
-    from inference.check import CheckSettings
+    from inference.criticism.check import CheckSettings
     from inference.criticism import NoiseModel
     from inference.observations import check_field_of_view, read_measurement, thin
     from skinfem.config import PARAM_NAMES, config_from_toml, load_config
@@ -234,8 +234,8 @@ def check_inputs(args):
 def cmd_check(args) -> None:
     from mpi4py import MPI
 
-    from inference.check import run_check
-    from inference.check_report import write_report
+    from inference.criticism.check import run_check
+    from inference.criticism.report import write_report
     from skinfem.parallel import collective
 
     comm = MPI.COMM_WORLD
@@ -247,8 +247,8 @@ def cmd_check(args) -> None:
         print(result.diagnosis.text)
         for v in result.versions:
             m = v.metrics
-            print(f"{v.calibration.label:>30}: RMSE {m['rmse']:.3e}, chi2/dof {m['chi2_per_dof']:.3f}, "
-                  f"PPC p {m['ppc_p']:.3f}, {'structured' if m['structured'] else 'consistent with noise'}")
+            print(f"{v.calibration.label:>30}: RMSE {m.rmse:.3e}, chi2/dof {m.chi2_per_dof:.3f}, "
+                  f"PPC p {m.ppc_p:.3f}, {'structured' if m.structured else 'consistent with noise'}")
         print(f"wrote {path}")
 
 

@@ -36,7 +36,10 @@ class MeshConfig:
     """Geometry and resolution of the layered block (mm).
 
     The in-plane grid is a tensor product: uniform cells of ``h_membrane`` under the
-    membrane footprint, geometrically graded to about ``h_far`` at the block edge.
+    membrane footprint, geometrically graded to about ``h_far`` at the block edge. With
+    ``h_edge`` > 0 the cells at the membrane's edge are ``h_edge`` instead, graded
+    geometrically to ``h_membrane`` at the centre and to ``h_far`` at the block edge (the
+    strain concentrates at the edge; 0: no edge refinement).
     """
 
     length: float = 50.0
@@ -46,6 +49,7 @@ class MeshConfig:
     membrane_thickness: float = 1.0
     h_membrane: float = 0.5
     h_far: float = 2.0
+    h_edge: float = 0.0
     skin_layers: int = 1
     muscle_layers: int = 5
     membrane_layers: int = 1
@@ -53,7 +57,10 @@ class MeshConfig:
     def validate(self, prefix: str = "mesh") -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            _check(value > 0, f"{prefix}.{f.name}", f"must be > 0, got {value}")
+            if f.name != "h_edge":
+                _check(value > 0, f"{prefix}.{f.name}", f"must be > 0, got {value}")
+        _check(0 <= self.h_edge <= self.h_membrane, f"{prefix}.h_edge",
+               f"must be 0 (no edge refinement) or in (0, mesh.h_membrane], got {self.h_edge}")
         _check(
             self.membrane_size < self.length,
             f"{prefix}.membrane_size",

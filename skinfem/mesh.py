@@ -4,7 +4,9 @@ Built with the gmsh Python API by extrusion, so every cell is a hexahedron and t
 grid is a tensor product, mirror-symmetric about x = 0 and y = 0:
 
 - in plane: uniform cells of ``h_membrane`` under the membrane footprint |x|, |y| <= a,
-  geometrically graded outwards to about ``h_far`` at the block edge |x| or |y| = L/2;
+  geometrically graded outwards to about ``h_far`` at the block edge |x| or |y| = L/2; with
+  ``h_edge`` > 0, cells of ``h_edge`` on both sides of the membrane edge |x| or |y| = a,
+  graded to ``h_membrane`` at the centre and to ``h_far`` at the block edge;
 - through the thickness: ``skin_layers`` cells in the skin (z in [-h_s, 0]),
   ``muscle_layers`` in the muscle (z in [-h_s - h_m, -h_s]) and ``membrane_layers`` in the
   membrane (z in [0, t_mem] over the footprint; absent for ``membrane.model = "rigid"``).
@@ -37,14 +39,26 @@ TAGS = {
 }
 
 DEFAULT_MESH_DIR = Path("meshes")
+EDGE_GROWTH = 1.3  # largest size ratio of neighbouring cells graded away from a refined membrane edge
 
 
-def graded_sizes(length: float, h_start: float, h_end: float) -> np.ndarray:
+def graded_sizes(length: float, h_start: float, h_end: float, max_ratio: float = np.inf) -> np.ndarray:
     """Cell sizes of a geometric progression from ``h_start`` that fill ``length`` exactly.
 
     The number of cells is chosen so that the last cell is as close as possible to
-    ``h_end``. Returns a (n,) array of sizes in mm summing to ``length``.
+    ``h_end``, then raised until the growth ratio is at most ``max_ratio`` (the last cell is
+    then smaller than ``h_end``). Returns a (n,) array of sizes in mm summing to ``length``.
     """
+    sizes = _closest_progression(length, h_start, h_end)
+    n = len(sizes)
+    while len(sizes) > 1 and sizes[1] / sizes[0] > max_ratio:
+        n += 1
+        sizes = h_start * _progression_ratio(length, h_start, n) ** np.arange(n)
+        sizes *= length / sizes.sum()
+    return sizes
+
+
+def _closest_progression(length: float, h_start: float, h_end: float) -> np.ndarray:
     if h_end <= h_start * (1 + 1e-12):
         n = max(1, round(length / h_start))
         return np.full(n, length / n)
@@ -83,12 +97,18 @@ def inplane_coordinates(mesh_cfg: MeshConfig) -> np.ndarray:
     """Node coordinates (mm) along x (and y): symmetric about 0, refined under the membrane."""
     half = mesh_cfg.length / 2
     a = mesh_cfg.membrane_size / 2
-    n_center = max(2, round(mesh_cfg.membrane_size / mesh_cfg.h_membrane))
-    h_center = mesh_cfg.membrane_size / n_center
-    outer = graded_sizes(half - a, h_center, mesh_cfg.h_far)
+    if 0 < mesh_cfg.h_edge < mesh_cfg.h_membrane:
+        inner = graded_sizes(a, mesh_cfg.h_edge, mesh_cfg.h_membrane, EDGE_GROWTH)[::-1]  # centre -> edge
+        center = np.concatenate([[0.0], np.cumsum(inner)])
+        center = np.concatenate([-center[::-1], center[1:]]) * (a / center[-1])
+        h_edge = mesh_cfg.h_edge
+    else:
+        n_center = max(2, round(mesh_cfg.membrane_size / mesh_cfg.h_membrane))
+        center = np.linspace(-a, a, n_center + 1)
+        h_edge = mesh_cfg.membrane_size / n_center
+    outer = graded_sizes(half - a, h_edge, mesh_cfg.h_far, EDGE_GROWTH if mesh_cfg.h_edge else np.inf)
     right = a + np.concatenate([[0.0], np.cumsum(outer)])
     right[-1] = half
-    center = np.linspace(-a, a, n_center + 1)
     return np.concatenate([-right[::-1], center[1:-1], right])
 
 

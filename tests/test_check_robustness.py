@@ -87,7 +87,7 @@ def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path
 DRIVER = """
 import sys
 from mpi4py import MPI
-import inference.check, inference.forward
+import inference.criticism.check, inference.forward
 from inference.__main__ import main
 
 def fail_on_rank_1(*args, **kwargs):
@@ -113,7 +113,7 @@ def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path)
         target = patch = "inference.forward.FEForward._simulate"
         error = "RuntimeError"
     else:
-        target = patch = "inference.check.spread_start"
+        target = patch = "inference.criticism.check.spread_start"
         error = "RuntimeError"
     script = tmp_path / "driver.py"
     script.write_text(textwrap.dedent(DRIVER.format(error=error, target=target, patch=patch,

@@ -9,15 +9,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from inference.criticism import (
-    Data,
-    NoiseModel,
-    calibrate,
-    diagnose,
-    residual_metrics,
-    score_candidates,
-    signatures,
-)
+from inference.criticism import Data, NoiseModel, calibrate, diagnose, residual_metrics
+from inference.criticism.diagnosis import score_candidates, signatures
 from inference.forward import ForwardModel, TaylorForward, parameter_space
 from skinfem.effects import EFFECTS, prestretch_log_strain
 from skinfem.params import SkinParams
@@ -91,7 +84,7 @@ def test_score_statistic_equals_the_fitted_chi2_drop_for_a_linear_model(linear_w
     scores = {s.effect: s for s in score_candidates(cal, data, signatures(linear_world, cal, data, list(EFFECTS)))}
     free = list(range(5)) + linear_world.index(["bonding.compliance"])
     fit = calibrate(linear_world, data, cal.x, free, max_iterations=20)
-    drop = residual_metrics(cal, data)["chi2"] - residual_metrics(fit, data)["chi2"]
+    drop = residual_metrics(cal, data).chi2 - residual_metrics(fit, data).chi2
     assert scores["bonding"].statistic == pytest.approx(drop, rel=1e-6)
     assert max(scores, key=lambda k: scores[k].statistic) == "bonding"
 
@@ -129,7 +122,7 @@ def test_no_effect_is_reported_on_noise_only_data(taylor_at_truth):
         data = Data(y, np.ones((1, len(xy)), bool), xy[None], noise)
         cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
         d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
-        structured += d.metrics["structured"]
+        structured += d.metrics.structured
         alarms += d.best is not None
     assert alarms <= 3, f"{alarms} false alarms in 60"
     assert structured <= 6  # the PPC flags ~1 % of pure-noise residuals
@@ -151,7 +144,7 @@ def test_understated_noise_is_reported_not_explained_by_an_effect(taylor_at_trut
     cal, data, statement = check_noise_statement(forward, cal, data)
     assert not statement.consistent and statement.factor == pytest.approx(2.0, rel=0.15)
     d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
-    assert d.best is None and not d.metrics["structured"]
+    assert d.best is None and not d.metrics.structured
 
     x = forward.x0.copy()
     for name, value in PRESTRETCH.items():
@@ -262,5 +255,5 @@ def test_an_effect_outside_the_candidates_is_not_attributed(linear_world, grid_x
     data, cal = linear_data(linear_world, grid_xy, {"bonding.compliance": 0.5}, seed=6)
     others = [e for e in EFFECTS if e != "bonding"]
     d = diagnose(linear_world, cal, data, others, half=10.0, band=4.0, confirm=2, max_iterations=20)
-    assert d.metrics["structured"]
+    assert d.metrics.structured
     assert d.best is None and "No candidate explains the residual" in d.text

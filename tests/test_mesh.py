@@ -21,6 +21,31 @@ def test_inplane_grid_is_symmetric_and_refined_under_membrane():
     assert x[0] == -25 and x[-1] == 25
 
 
+def test_edge_refinement_grades_both_ways_from_the_membrane_edge():
+    """h_edge: the two cells touching x = +-a are h_edge, neighbours grow by at most 1.3 towards
+    the centre (to about h_membrane) and towards the block edge; the grid stays symmetric."""
+    from skinfem.mesh import EDGE_GROWTH
+
+    mesh = Config().mesh.__class__(h_membrane=2.0, h_far=6.0, h_edge=0.25)
+    x = inplane_coordinates(mesh)
+    np.testing.assert_allclose(x, -x[::-1], atol=1e-12)
+    h = np.diff(x)
+    edge = int(np.argmin(np.abs(x - 10.0)))
+    assert x[edge] == pytest.approx(10.0, abs=1e-12)
+    assert h[edge - 1] == pytest.approx(0.25, rel=0.05) and h[edge] == pytest.approx(0.25, rel=1e-9)
+    growth = np.maximum(h[1:] / h[:-1], h[:-1] / h[1:])
+    assert growth.max() <= EDGE_GROWTH + 1e-9
+    assert 1.5 < h[len(h) // 2] <= 2.0 + 1e-9  # centre cells about h_membrane
+    assert x[0] == -25 and x[-1] == 25
+
+
+def test_graded_sizes_respect_a_largest_growth_ratio():
+    sizes = graded_sizes(15.0, 0.25, 6.0, max_ratio=1.3)
+    assert sizes.sum() == pytest.approx(15.0, rel=1e-12)
+    assert np.all(sizes[1:] / sizes[:-1] <= 1.3 + 1e-9) and sizes[0] == pytest.approx(0.25, rel=0.05)
+    assert graded_sizes(15.0, 0.5, 2.0, max_ratio=10.0) == pytest.approx(graded_sizes(15.0, 0.5, 2.0))
+
+
 def test_small_mesh_counts_and_groups(tmp_path):
     import gmsh
 

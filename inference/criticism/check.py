@@ -1,35 +1,27 @@
-"""``skinid check``: model criticism of measurements against the FE model (see criticism.py).
+"""``skinid check``: model criticism of measurements against the FE model.
 
 :func:`run_check` calibrates the baseline on the mesh the user chose (started at the
 emulator's posterior mode, or at the best of a few spread points), estimates and carries the
-mesh's own discretisation error (discretisation.py), diagnoses the residual, adds the
-requested effects one after the other and returns every model version with its metrics;
-:func:`inference.check_report.write_report` writes the report.
+mesh's own discretisation error (:mod:`.discretisation`), diagnoses the residual
+(:mod:`.diagnosis`), adds the requested effects one after the other and returns every model
+version with its metrics; :func:`inference.criticism.report.write_report` writes the report.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
-from inference.criticism import (
-    Calibration,
-    Data,
-    Diagnosis,
-    NoiseModel,
-    NoiseStatement,
-    calibrate,
-    check_noise_statement,
-    diagnose,
-    extend,
-    rank_regions,
-    residual_metrics,
-)
-from inference.discretisation import CorrectedForward, DiscretisationError, estimate, refined_config
+from inference.criticism.calibration import Calibration, calibrate
+from inference.criticism.data import Data, NoiseModel
+from inference.criticism.diagnosis import Diagnosis, NoiseStatement, check_noise_statement, diagnose, extend
+from inference.criticism.discretisation import CorrectedForward, DiscretisationError, estimate, refined_config
+from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
 from inference.forward import FailedRun, FEForward, ForwardModel
 from inference.observations import Measurement, map_to_cells
 from skinfem.config import Config
@@ -79,8 +71,26 @@ class Version:
     """One model version: its calibration, residual metrics and region ranking."""
 
     calibration: Calibration
-    metrics: dict
-    regions: list[dict]
+    metrics: ResidualMetrics
+    regions: list[RegionResidual]
+
+
+@dataclass
+class CheckTimings:
+    """Wall seconds and FE simulations of each phase of a check."""
+
+    setup_s: float = 0.0
+    compare_s: float = 0.0  # baseline calibration(s), discretisation estimate, noise statement
+    compare_fe_runs: int = 0
+    refined_s: float = 0.0  # the refined mesh's simulations (part of compare)
+    refined_fe_runs: int = 0
+    diagnose_s: float = 0.0
+    diagnose_fe_runs: int = 0
+    add_s: float = 0.0
+    add_fe_runs: int = 0
+    add_reused_from_diagnose_s: float = 0.0  # fits made while diagnosing, reused as versions
+    add_reused_from_diagnose_fe_runs: int = 0
+    fe_runs_read_from_cache: int = 0
 
 
 @dataclass
@@ -100,7 +110,7 @@ class CheckResult:
     start_from: str
     gauge_text: str
     fe_seconds_per_run: float
-    timings: dict
+    timings: CheckTimings
 
 
 def emulator_start(emulator: Emulator, measurements: list[Measurement], seed: int = 0) -> np.ndarray:
@@ -138,13 +148,13 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
               skin_bounds: np.ndarray, emulator: Emulator | None = None, mesh_dir: Path | str = "meshes",
               comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None) -> CheckResult:
     """Calibrate the baseline on ``config``'s mesh, estimate its discretisation error, diagnose
-    the residual, add ``settings.add`` effects; see criticism.py and discretisation.py.
+    the residual, add ``settings.add`` effects (see :mod:`inference.criticism`).
 
     The emulator, when given, only provides the starting point (its posterior mode); without
     it the start is the best of a few spread points. ``cache_dir`` keeps every finished FE
     simulation on disk; a rerun of the same check (e.g. after a kill) reads them.
     """
-    timings = {}
+    timings = CheckTimings()
     t0 = time.perf_counter()
     forward = FEForward(config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir,
                         settings.gauge)
@@ -154,49 +164,68 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
         start[:5] = on_root(comm, lambda: emulator_start(emulator, measurements))
     else:
         start = spread_start(forward, data)
-    timings["setup_s"] = time.perf_counter() - t0
+    timings.setup_s = time.perf_counter() - t0
     half = config.mesh.membrane_size / 2
     band = settings.band or 2 * config.mesh.h_membrane
 
     t0, runs0 = time.perf_counter(), forward.runs
-    baseline = calibrate(forward, data, start, list(range(5)), max_iterations=settings.max_iterations)
-    disc = None
-    model: ForwardModel = forward
-    if settings.discretisation:
-        fine = FEForward(refined_config(forward.config), measurements, skin_bounds, mesh_dir, None, comm, cache_dir,
-                         settings.gauge)
-        disc = estimate(forward, fine, baseline.x, data)
-        model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd(data.xy, data.masks))
-        baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
-        timings["refined_fe_runs"], timings["refined_s"] = fine.runs, disc.seconds
+    refined = lambda: FEForward(refined_config(forward.config), measurements, skin_bounds, mesh_dir,  # noqa: E731
+                                None, comm, cache_dir, settings.gauge)
+    model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
     baseline, data, noise_statement = check_noise_statement(model, baseline, data, settings.max_iterations // 2)
-    timings["compare_s"], timings["compare_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
+    timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     diagnosis = diagnose(model, baseline, data, settings.candidates, half, band, settings.confirm,
                          mesh_resolved=disc is None or disc.resolved,
                          max_iterations=settings.max_iterations)  # also the baseline's metrics
-    timings["diagnose_s"], timings["diagnose_fe_runs"] = diagnosis.seconds, diagnosis.fe_runs
+    timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
 
     t0, runs0 = time.perf_counter(), forward.runs
-    versions = [Version(baseline, diagnosis.metrics, diagnosis.regions)]
-    reused_s = reused_runs = 0
-    for effect in settings.add:
-        previous = versions[-1].calibration
-        if len(versions) == 1 and effect in diagnosis.fits:  # already calibrated while diagnosing
-            cal = diagnosis.fits[effect]
-            reused_s, reused_runs = reused_s + cal.seconds, reused_runs + cal.fe_runs
-        else:
-            cal = extend(model, previous, data, effect, max_iterations=settings.max_iterations)
-        versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
-    timings["add_s"], timings["add_fe_runs"] = time.perf_counter() - t0, forward.runs - runs0
-    timings["add_reused_from_diagnose_s"], timings["add_reused_from_diagnose_fe_runs"] = reused_s, reused_runs
-    timings["fe_runs_read_from_cache"] = forward.reused
+    versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
+    timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
+    timings.fe_runs_read_from_cache = forward.reused
     diagnosis.text = " ".join(part for part in (disc.summary() if disc else "", noise_statement.summary(noise.sd),
                                                  diagnosis.text) if part)
     return CheckResult(
         data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
-        versions=versions, diagnosis=diagnosis, discretisation=disc, noise_statement=noise_statement, failures=forward.failures, start=start,
+        versions=versions, diagnosis=diagnosis, discretisation=disc, noise_statement=noise_statement,
+        failures=forward.failures, start=start,
         start_from="emulator's posterior mode" if emulator is not None else "best of 5 spread points",
         gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
                     f"(one per {settings.spacing:g} mm square)"),
         fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size, timings=timings,
     )
+
+
+def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, start: np.ndarray,
+            settings: CheckSettings, timings: CheckTimings
+            ) -> tuple[ForwardModel, Data, Calibration, DiscretisationError | None]:
+    """The baseline calibration; with ``settings.discretisation`` the mesh's own error is
+    estimated at it (``refined()``: the model on the refined mesh; one run per design), the
+    model corrected, the data given the carried model error, and the baseline recalibrated.
+    Returns (model, data, baseline, error)."""
+    baseline = calibrate(forward, data, start, list(range(5)), max_iterations=settings.max_iterations)
+    if not settings.discretisation:
+        return forward, data, baseline, None
+    fine = refined()
+    disc = estimate(forward, fine, baseline.x, data)
+    model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd(data.xy, data.masks))
+    baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
+    timings.refined_fe_runs, timings.refined_s = fine.runs, disc.seconds
+    return model, data, baseline, disc
+
+
+def add_versions(model: ForwardModel, data: Data, baseline: Calibration, diagnosis: Diagnosis,
+                 settings: CheckSettings, half: float, band: float, timings: CheckTimings) -> list[Version]:
+    """The baseline, then ``settings.add`` effects one after the other, each version including
+    the previous ones (a fit made while diagnosing is reused as the first added version)."""
+    versions = [Version(baseline, diagnosis.metrics, diagnosis.regions)]
+    for effect in settings.add:
+        previous = versions[-1].calibration
+        if len(versions) == 1 and effect in diagnosis.fits:  # already calibrated while diagnosing
+            cal = diagnosis.fits[effect]
+            timings.add_reused_from_diagnose_s += cal.seconds
+            timings.add_reused_from_diagnose_fe_runs += cal.fe_runs
+        else:
+            cal = extend(model, previous, data, effect, max_iterations=settings.max_iterations)
+        versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
+    return versions

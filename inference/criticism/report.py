@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
-from inference.check import CheckResult
+from inference.criticism.check import CheckResult
 from inference.plots import pyplot, field_grid, save_figure
 from skinfem.effects import get_effect
 
@@ -28,7 +29,7 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
         out = path.with_name(f"{path.stem}_obs{o}.png")
         field_grid(result.data.xy[o, mask], rows, titles, out, result.half, float(cal.x[4]), window=2 * result.half,
                    suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
-                            f"residual RMSE {result.versions[version].metrics['rmse']:.2e}")
+                            f"residual RMSE {result.versions[version].metrics.rmse:.2e}")
         paths.append(out)
     return paths
 
@@ -52,7 +53,7 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     r = 2.2 * h
     for sign in (1, -1):
         ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)
-    ax.text(0.02, 0.98, "\n".join(f"{i + 1}. {g['region']}: {g['rms_sigma']:.1f} σ" for i, g in enumerate(v.regions)),
+    ax.text(0.02, 0.98, "\n".join(f"{i + 1}. {g.region}: {g.rms_sigma:.1f} σ" for i, g in enumerate(v.regions)),
             transform=ax.transAxes, fontsize=8, va="top", bbox=dict(facecolor="w", alpha=0.85, lw=0))
     ax.set_xlim(-2.5 * h, 2.5 * h)
     ax.set_ylim(-2.5 * h, 2.5 * h)
@@ -68,12 +69,12 @@ def error_falls_plot(result: CheckResult, path: Path) -> Path:
     """RMSE and chi^2/dof of each model version against the noise level."""
     plt = pyplot()
     labels = [v.calibration.label.replace(" + ", "\n+ ") for v in result.versions]
-    rmse = [v.metrics["rmse"] for v in result.versions]
-    chi = [v.metrics["chi2_per_dof"] for v in result.versions]
+    rmse = [v.metrics.rmse for v in result.versions]
+    chi = [v.metrics.chi2_per_dof for v in result.versions]
     fig, axes = plt.subplots(1, 2, figsize=(4 + 1.6 * len(labels), 3.8))
     x = np.arange(len(labels))
     axes[0].bar(x, rmse, color="C0")
-    axes[0].axhline(result.versions[0].metrics["noise_rms"], color="k", ls="--", label="stated noise sd (RMS)")
+    axes[0].axhline(result.versions[0].metrics.noise_rms, color="k", ls="--", label="stated noise sd (RMS)")
     axes[0].set_ylabel("residual RMSE [log strain]")
     axes[0].legend(fontsize=8)
     axes[1].bar(x, chi, color="C1")
@@ -156,17 +157,17 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
              f"Calibrated on the FE model (Levenberg–Marquardt from the {result.start_from}; Laplace posterior), "
              f"measured like the DIC system: {result.gauge_text}.", "",
              "| metric | value | noise alone |", "|---|---|---|",
-             f"| residual RMSE [log strain] | {_fmt(base['rmse'])} | {_fmt(base['noise_rms'])} |",
-             f"| χ²/dof (whitened, dof = {base['dof']}) | {base['chi2_per_dof']:.3f} | 1 ± {np.sqrt(2 / base['dof']):.3f} |",
-             f"| posterior-predictive p-value | {base['ppc_p']:.3f} | uniform on [0, 1] |",
-             f"| Moran's I of the residual / sd (z vs the noise model) | {base['moran_I']:.3f} (z = {base['moran_z']:.1f}) | z ~ N(0, 1) |",
+             f"| residual RMSE [log strain] | {_fmt(base.rmse)} | {_fmt(base.noise_rms)} |",
+             f"| χ²/dof (whitened, dof = {base.dof}) | {base.chi2_per_dof:.3f} | 1 ± {np.sqrt(2 / base.dof):.3f} |",
+             f"| posterior-predictive p-value | {base.ppc_p:.3f} | uniform on [0, 1] |",
+             f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} (z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
              ""]
     lines += discretisation_lines(result) + failure_lines(result)
     lines += [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(figures["baseline"])]
     lines += ["", "## 2. Where the model fails", "",
               "RMS of (measured − model) / sd over each region's points (noise and carried model error alone give 1):", "",
               "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
-    lines += [f"| {i + 1} | {g['region']} | {g['points']} | {g['rms_sigma']:.2f} |" for i, g in enumerate(d.regions)]
+    lines += [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
     lines += ["", "![regions](regions.png)", "", "## 3. Which effect is missing", "",
               "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
               "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
@@ -183,9 +184,9 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
               "|---|---|---|---|---|---|---|---|"]
     for v in result.versions:
         m = v.metrics
-        lines.append(f"| {v.calibration.label} | {m['n_params']} | {_fmt(m['rmse'])} | {m['chi2_per_dof']:.3f} | "
-                     f"{m['ppc_p']:.3f} | {m['moran_z']:.1f} | {base['bic'] - m['bic']:+.1f} | "
-                     f"{'yes' if not m['structured'] else 'no'} |")
+        lines.append(f"| {v.calibration.label} | {m.n_params} | {_fmt(m.rmse)} | {m.chi2_per_dof:.3f} | "
+                     f"{m.ppc_p:.3f} | {m.moran_z:.1f} | {base.bic - m.bic:+.1f} | "
+                     f"{'yes' if not m.structured else 'no'} |")
     lines += ["", "![error falls](error_falls.png)", "", "Parameter estimates (± 1 sd, Laplace):", "",
               "| parameter | " + " | ".join(v.calibration.label for v in result.versions) + " |",
               "|---|" + "---|" * len(result.versions)]
@@ -206,10 +207,10 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
         lines += [f"![final residual, observation {i}]({p.name})" for i, p in enumerate(figures["final"])]
     t = result.timings
     lines += ["", "## Cost", "",
-              f"compare {t['compare_s']:.0f} s ({t['compare_fe_runs']} FE runs), diagnose {t['diagnose_s']:.0f} s "
-              f"({t['diagnose_fe_runs']} runs), add {t['add_s']:.0f} s ({t['add_fe_runs']} new runs; "
-              f"{t['add_reused_from_diagnose_fe_runs']} runs of fits made while diagnosing reused); "
-              f"{result.fe_seconds_per_run:.2f} s per FE run; {t['fe_runs_read_from_cache']} runs read from "
+              f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
+              f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
+              f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused); "
+              f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_read_from_cache} runs read from "
               f"the cache of an earlier run (`fe_runs/`).", ""]
     path = out / "report.md"
     _write_atomically(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
@@ -233,12 +234,13 @@ def report_dict(result: CheckResult) -> dict:
         "noise_statement": {"consistent": result.noise_statement.consistent, "factor": result.noise_statement.factor,
                             "used_sd": result.data.noise.sd.tolist()},
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
-        "regions": d.regions,
+        "regions": [dataclasses.asdict(g) for g in d.regions],
         "candidates": [dict(vars(s)) for s in d.scores],
-        "versions": [{"label": v.calibration.label, "metrics": v.metrics, "regions": v.regions,
+        "versions": [{"label": v.calibration.label, "metrics": dataclasses.asdict(v.metrics),
+                      "regions": [dataclasses.asdict(g) for g in v.regions],
                       "estimates": v.calibration.estimates(), "fe_runs": v.calibration.fe_runs}
                      for v in result.versions],
-        "timings": result.timings,
+        "timings": dataclasses.asdict(result.timings),
         "fe_seconds_per_run": result.fe_seconds_per_run,
     }
 

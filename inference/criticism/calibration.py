@@ -1,0 +1,167 @@
+"""Calibration of the forward model to the whitened measurements, with its Laplace posterior."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from inference.criticism.data import Data, stack
+from inference.forward import ForwardModel
+
+CHI2_TOLERANCE = 1e-3  # a calibration stops once a step lowers chi^2 by less than this
+
+
+@dataclass
+class Calibration:
+    """A calibrated model version: point estimate, Laplace covariance, residuals.
+
+    Attributes:
+        names: all parameter names of the forward model; x: (p,) values (fixed ones included).
+        free: indices of the calibrated parameters; cov: (k, k) their covariance.
+        model_fields: (n_obs, n_pts, 3) fields at x; whitened: whitened residual.
+        jac: (n, k) derivative of the stacked whitened *model* with respect to the free
+            parameters (physical units).
+        rejected: parameter points (p,) where the FE model did not converge (steps rejected).
+    """
+
+    names: list[str]
+    x: np.ndarray
+    free: list[int]
+    cov: np.ndarray
+    model_fields: np.ndarray
+    whitened: np.ndarray
+    jac: np.ndarray
+    fe_runs: int
+    seconds: float
+    label: str = "baseline"
+    rejected: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def free_names(self) -> list[str]:
+        return [self.names[i] for i in self.free]
+
+    @property
+    def chi2(self) -> float:
+        """Sum of squares of the whitened residual."""
+        return float(np.nansum(self.whitened**2))
+
+    @property
+    def sd(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    def estimates(self) -> dict[str, dict[str, float]]:
+        sd = dict(zip(self.free_names, self.sd))
+        return {n: {"value": float(self.x[i]), "sd": float(sd.get(n, 0.0))} for i, n in enumerate(self.names)
+                if i in self.free}
+
+
+class CalibrationError(RuntimeError):
+    """The forward model has no solution at the calibration's starting point."""
+
+
+class _UnitBoxProblem:
+    """Whitened residuals of the free parameters z in the unit box [0, 1]^k (helper of calibrate)."""
+
+    def __init__(self, forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int]):
+        self.forward, self.data, self.free = forward, data, free
+        self.lo, self.span = forward.bounds[free, 0], np.ptp(forward.bounds[free], axis=1)
+        self.base = np.asarray(x0, dtype=float).copy()
+        self.rejected: list[np.ndarray] = []
+        self.fields: dict[bytes, np.ndarray] = {}  # model fields of evaluated z (no rerun at the end)
+
+    def point(self, z: np.ndarray) -> np.ndarray:
+        x = self.base.copy()
+        x[self.free] = self.lo + np.clip(z, 0, 1) * self.span
+        return x
+
+    def residuals(self, zs: list[np.ndarray]) -> list[np.ndarray | None]:
+        """Stacked whitened residuals (n,) at each z; None (and recorded) where FE failed."""
+        points = [self.point(z) for z in zs]
+        out = []
+        for z, x, fields in zip(zs, points, self.forward.evaluate_many(points)):
+            if fields is None:
+                self.rejected.append(x)
+                out.append(None)
+            else:
+                self.fields[z.tobytes()] = fields
+                out.append(stack(self.data.whitened_residual(fields), self.data.masks))
+        return out
+
+    def evaluate(self, z: np.ndarray, step: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Residual r (n,) and Jacobian d r / d z (n, k) at z: exact in one run when the forward
+        model has derivatives, else the Jacobian is left to :meth:`jacobian` (None)."""
+        if not self.forward.exact_jacobian:
+            return self.residuals([z])[0], None
+        x = self.point(z)
+        (result,) = self.forward.evaluate_with_jacobian([x], [self.forward.names[i] for i in self.free])
+        if result is None:
+            self.rejected.append(x)
+            return None, None
+        fields, derivative = result
+        self.fields[z.tobytes()] = fields
+        J = np.stack([-self.data.whiten(derivative[..., i]) * s for i, s in enumerate(self.span)], 1)
+        return stack(self.data.whitened_residual(fields), self.data.masks), J
+
+    def jacobian(self, z: np.ndarray, r0: np.ndarray, step: float) -> np.ndarray:
+        """(n, k) one-sided differences d r / d z; the other side where a run failed (0 if both)."""
+        eye = np.eye(len(z))
+        h = np.where(z + step <= 1, step, -step)
+        columns = self.residuals([z + h[i] * eye[i] for i in range(len(z))])
+        retry = [i for i, c in enumerate(columns) if c is None and 0 <= z[i] - h[i] <= 1]
+        h[retry] *= -1
+        for i, c in zip(retry, self.residuals([z + h[i] * eye[i] for i in retry])):
+            columns[i] = c
+        return np.stack([np.zeros_like(r0) if c is None else (c - r0) / h[i] for i, c in enumerate(columns)], 1)
+
+
+def calibrate(forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int], label: str = "baseline",
+              max_iterations: int = 12, step: float = 1e-3) -> Calibration:
+    """Least-squares fit of the free parameters (within their prior box) to the whitened data.
+
+    Levenberg–Marquardt in the unit box of the prior (steps projected onto the box). A trial
+    point where the FE model does not converge is a rejected step: the damping grows (the
+    step shrinks), the point is recorded in ``Calibration.rejected`` and the fit continues.
+    Jacobians are exact when the forward model has derivatives (forward sensitivities: one
+    run per trial point), else forward differences of ``step`` in the unit box (one run per
+    free parameter, spread over MPI ranks by the forward model). The fit stops once a step
+    lowers chi^2 by less than ``CHI2_TOLERANCE`` or after ``max_iterations`` trial steps.
+    Returns the Laplace posterior at the optimum.
+
+    Raises:
+        CalibrationError: the model does not converge at the starting point.
+    """
+    start, runs0 = time.perf_counter(), forward.runs
+    problem = _UnitBoxProblem(forward, data, x0, free)
+    z = np.clip((problem.base[free] - problem.lo) / problem.span, 0, 1)
+    r, J = problem.evaluate(z, step)
+    if r is None:
+        raise CalibrationError(f"the FE model does not converge at the starting point {problem.point(z)}")
+    J, damping = problem.jacobian(z, r, step) if J is None else J, 1e-3
+    for _ in range(max_iterations):
+        A, g = J.T @ J, J.T @ r
+        dz = np.linalg.solve(A + damping * np.diag(np.diag(A) + 1e-12 * np.trace(A)), -g)
+        z_new = np.clip(z + dz, 0, 1)
+        if np.max(np.abs(z_new - z)) < 1e-8:
+            break
+        r_new, J_new = problem.evaluate(z_new, step)
+        if r_new is None or r_new @ r_new >= r @ r:  # failed run or no decrease: a shorter step
+            damping *= 10 if r_new is None else 4
+            continue
+        decrease = r @ r - r_new @ r_new
+        z, r, damping = z_new, r_new, damping / 3
+        if J_new is not None:
+            J = J_new
+        if decrease < CHI2_TOLERANCE:  # chi^2 no longer moves by a statistically visible amount
+            break
+        if J_new is None:
+            J = problem.jacobian(z, r, step)
+    x = problem.point(z)
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-12) * np.outer(problem.span, problem.span)
+    fields = problem.fields[z.tobytes()]
+    return Calibration(
+        names=list(forward.names), x=x, free=list(free), cov=cov, model_fields=fields,
+        whitened=data.whitened_residual(fields), jac=-J / problem.span, fe_runs=forward.runs - runs0,
+        seconds=time.perf_counter() - start, label=label, rejected=problem.rejected,
+    )

@@ -1,0 +1,137 @@
+"""Measured fields and their noise: the stated noise model, whitening, the model-error term.
+
+Noise model: independent strain components with the stated standard deviations sd_c and a
+spatial correlation (1 - w) RBF(l) + w I between points (:func:`inference.noise.correlation_matrix`).
+Whitening uses the symmetric inverse square root of the covariance, so whitened values stay
+attached to their points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from inference.noise import correlation_matrix, noise_fields
+
+
+@dataclass
+class NoiseModel:
+    """Stated measurement noise: sd (3,) per strain component, correlation length [mm], nugget."""
+
+    sd: np.ndarray
+    length: float = 0.0
+    nugget: float = 1.0
+    _roots: dict = field(default_factory=dict, repr=False)  # cached matrix (inverse) square roots
+
+    def __post_init__(self):
+        self.sd = np.asarray(self.sd, dtype=float)
+        if self.sd.shape != (3,) or not np.all(self.sd > 0):
+            raise ValueError(f"noise sd must be three positive numbers (xx, yy, xy), got {self.sd}")
+        correlation_matrix(np.zeros((1, 2)), self.length, self.nugget)  # validates both
+
+    def whiteners(self, xy: np.ndarray, model_sd: np.ndarray | None = None) -> list[np.ndarray]:
+        """Symmetric Sigma_c^(-1/2) (m, m) per component c for points xy (m, 2), cached.
+
+        Sigma_c = sd_c^2 R + diag(model_sd[:, c]^2): the correlated noise plus an independent
+        model-form error of standard deviation ``model_sd`` (m, 3) (None: no model error).
+        """
+        key = ("whiten", xy.tobytes(), None if model_sd is None else model_sd.tobytes())
+        if key not in self._roots:
+            corr = correlation_matrix(xy, self.length, self.nugget)
+            if model_sd is None:
+                root = inverse_sqrt(corr)
+                self._roots[key] = [root / s for s in self.sd]
+            else:
+                self._roots[key] = [inverse_sqrt(s**2 * corr + np.diag(model_sd[:, c] ** 2))
+                                    for c, s in enumerate(self.sd)]
+        return self._roots[key]
+
+    def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray,
+               model_sd: np.ndarray | None = None) -> np.ndarray:
+        """(n_obs, n_pts, 3) residual -> whitened residual (NaN off the mask).
+
+        ``xy`` (n_obs, n_pts, 2) points, ``masks`` (n_obs, n_pts), ``model_sd`` (n_obs, n_pts, 3)
+        or None: see :meth:`whiteners`."""
+        out = np.full(residual.shape, np.nan)
+        for o, mask in enumerate(masks):
+            extra = None if model_sd is None else model_sd[o, mask]
+            for c, root in enumerate(self.whiteners(xy[o, mask], extra)):
+                out[o, mask, c] = root @ residual[o, mask, c]
+        return out
+
+    def sample(self, xy: np.ndarray, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+        """Noise fields (*shape, m, 3) drawn from this model at points xy (m, 2)."""
+        key = ("root", xy.tobytes())
+        if key not in self._roots:  # eigen-root: also valid for length 0 or nugget 1
+            w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
+            self._roots[key] = v * np.sqrt(np.maximum(w, 0))
+        return noise_fields(self._roots[key], self.sd, shape, rng)
+
+
+def inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
+    """Symmetric inverse square root of a symmetric positive (semi-)definite matrix."""
+    w, v = np.linalg.eigh(matrix)
+    w = np.maximum(w, 1e-10 * w.max())
+    return (v / np.sqrt(w)) @ v.T
+
+
+def stack(values: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Flatten (n_obs, n_pts, ...) values on the observed points to (n,)."""
+    return np.concatenate([values[o, m].ravel() for o, m in enumerate(masks)])
+
+
+@dataclass
+class Data:
+    """Measured fields of the observations at their points, with the noise and model-error terms.
+
+    Attributes:
+        fields: (n_obs, n_pts, 3) log strain, NaN off the mask (observations zero-padded to the
+            largest point count).
+        masks: (n_obs, n_pts) True where a point is measured.
+        xy: (n_obs, n_pts, 2) points [mm].
+        noise: the stated measurement noise.
+        model_sd: (n_obs, n_pts, 3) or None: standard deviation of the model's own error at the
+            points (discretisation), carried as an independent variance next to the noise.
+    """
+
+    fields: np.ndarray
+    masks: np.ndarray
+    xy: np.ndarray
+    noise: NoiseModel
+    model_sd: np.ndarray | None = None
+
+    @classmethod
+    def from_points(cls, observations: list, noise: NoiseModel) -> "Data":
+        """From observations with ``xy`` (n_o, 2) and ``strain`` (n_o, 3) (e.g. measurements)."""
+        n = max(len(o.xy) for o in observations)
+        fields = np.full((len(observations), n, 3), np.nan)
+        xy = np.zeros((len(observations), n, 2))
+        masks = np.zeros((len(observations), n), bool)
+        for i, o in enumerate(observations):
+            fields[i, : len(o.xy)], xy[i, : len(o.xy)], masks[i, : len(o.xy)] = o.strain, o.xy, True
+        return cls(fields, masks, xy, noise)
+
+    def with_model_sd(self, model_sd: np.ndarray | None) -> "Data":
+        return Data(self.fields, self.masks, self.xy, self.noise, model_sd)
+
+    @property
+    def n(self) -> int:
+        return int(self.masks.sum()) * 3
+
+    @property
+    def total_sd(self) -> np.ndarray:
+        """(n_obs, n_pts, 3) per-point sd of noise and model error together."""
+        sd = np.broadcast_to(self.noise.sd, self.fields.shape)
+        return sd if self.model_sd is None else np.sqrt(sd**2 + self.model_sd**2)
+
+    def standardised(self, model_fields: np.ndarray) -> np.ndarray:
+        """(data - model) / total sd per component, NaN off the mask (still spatially correlated)."""
+        return (self.fields - model_fields) / self.total_sd
+
+    def whitened_residual(self, model_fields: np.ndarray) -> np.ndarray:
+        return self.noise.whiten(self.fields - model_fields, self.xy, self.masks, self.model_sd)
+
+    def whiten(self, fields: np.ndarray) -> np.ndarray:
+        """Stacked whitened (n,) of any (n_obs, n_pts, 3) field difference."""
+        return stack(self.noise.whiten(fields, self.xy, self.masks, self.model_sd), self.masks)

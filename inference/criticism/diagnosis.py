@@ -1,0 +1,244 @@
+"""Which effect is missing: candidate signatures, score tests, confirmation fits, the verdict."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from inference.criticism.calibration import Calibration, calibrate
+from inference.criticism.data import Data, NoiseModel, stack
+from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
+from inference.forward import ForwardModel
+from skinfem.effects import get_effect
+
+STRONG_EVIDENCE = 6.0  # Delta BIC above which a candidate is reported (Kass & Raftery: strong)
+MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess residual
+NOISE_STRUCTURE_Z = 3.0  # |Moran z| below which a residual has the stated noise's spatial structure
+
+
+@dataclass
+class NoiseStatement:
+    """Whether the stated noise sd is consistent with the residual (:func:`check_noise_statement`)."""
+
+    consistent: bool
+    factor: float  # estimated sd / stated sd (1 when consistent)
+    moran_z: float
+    chi2_per_dof: float
+
+    def summary(self, stated: np.ndarray) -> str:
+        if self.consistent:
+            return ""
+        estimated = ", ".join(f"{v:.2g}" for v in self.factor * stated)
+        return (f"The stated noise is inconsistent with the residual: it is {self.factor:.1f}x larger than stated "
+                f"(chi^2/dof = {self.chi2_per_dof:.2f}) but has the stated noise's spatial structure (Moran's I "
+                f"z = {self.moran_z:.1f}); the check continues with the estimated sd {estimated} (xx, yy, xy) "
+                "instead of looking for a missing effect in it (give --noise-sd to state it).")
+
+
+def check_noise_statement(forward: ForwardModel, cal: Calibration, data: Data,
+                          max_iterations: int = 6) -> tuple[Calibration, Data, NoiseStatement]:
+    """Is a structured residual only noise larger than stated?
+
+    Moran's I does not depend on the residual's scale: a residual that is larger than the
+    stated noise (PPC p < metrics.ALPHA) but whose spatial autocorrelation is that of the stated noise
+    model (|z| < NOISE_STRUCTURE_Z) is read as understated noise, not as missing physics
+    (missing effects are smooth fields: large z). The noise sd is then scaled by
+    sqrt(chi^2/dof) and the calibration repeated with it.
+    """
+    metrics = residual_metrics(cal, data)
+    statement = NoiseStatement(True, 1.0, metrics.moran_z, metrics.chi2_per_dof)
+    if not metrics.structured or abs(metrics.moran_z) >= NOISE_STRUCTURE_Z:
+        return cal, data, statement
+    statement.consistent, statement.factor = False, math.sqrt(metrics.chi2_per_dof)
+    noise = NoiseModel(data.noise.sd * statement.factor, data.noise.length, data.noise.nugget)
+    data = Data(data.fields, data.masks, data.xy, noise, data.model_sd)
+    return calibrate(forward, data, cal.x, cal.free, cal.label, max_iterations), data, statement
+
+
+# -- diagnosis -------------------------------------------------------------------------------
+@dataclass
+class CandidateScore:
+    """How well one candidate effect explains the residual of a calibrated model.
+
+    The *score* fields come from the linearised test at the null effect (cheap, all
+    candidates); the *fit* fields from actually calibrating the model with the effect added
+    (the strongest candidates only), which also holds when the effect is too large for the
+    linearisation. ``share_explained`` is the share of the excess residual chi^2 (above its
+    noise expectation) that the effect removes; ``explains`` needs strong evidence and at
+    least half of the excess.
+    """
+
+    effect: str
+    description: str
+    parameters: list[str]
+    statistic: float  # efficient score T, chi^2_dof under "no effect"
+    dof: int
+    p_value: float
+    delta_bic: float  # T - dof ln n: > 0 favours the effect
+    share_explained: float
+    confounding: float  # share of the fitted signature that skin-parameter re-tuning absorbs
+    estimate: dict[str, float]  # one-step (linear) estimate of the effect's parameters
+    fitted: bool = False  # delta_bic, share_explained, estimate come from a calibration
+    explains: bool = False
+
+    def summary(self) -> str:
+        est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in self.estimate.items())
+        how = "fitted" if self.fitted else "linearised"
+        return (f"{self.effect} (Delta BIC = {self.delta_bic:+.1f}, explains {self.share_explained:.0%} of the "
+                f"excess residual, {self.confounding:.0%} confounded with the skin parameters; {how} estimate {est})")
+
+
+def signatures(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str],
+               rel_step: float = 0.02) -> dict[str, np.ndarray]:
+    """Whitened signatures (n, dim phi) of each effect: derivatives of the model at ``cal.x``.
+
+    Exact (forward sensitivities, one run) when the forward model has derivatives. Otherwise
+    each parameter is moved ``rel_step`` of its prior range both ways, clipped to the range
+    (a null value on a bound gives a one-sided difference); a side whose FE run failed is
+    replaced by the calibrated point itself; if both fail the column is zero.
+    """
+    if forward.exact_jacobian:
+        names = [q for name in effects for q in get_effect(name).qualified_names()]
+        (result,) = forward.evaluate_with_jacobian([cal.x], names)
+        if result is not None:
+            columns = iter(data.whiten(result[1][..., i]) for i in range(len(names)))
+            return {name: np.stack([next(columns) for _ in get_effect(name).parameters], 1) for name in effects}
+    jobs = []  # (effect, parameter index, low value, high value)
+    for name in effects:
+        for i in forward.index(get_effect(name).qualified_names()):
+            h = rel_step * np.ptp(forward.bounds[i])
+            jobs.append((name, i, max(cal.x[i] - h, forward.bounds[i, 0]), min(cal.x[i] + h, forward.bounds[i, 1])))
+    points = []
+    for _, i, low, high in jobs:
+        for value in (low, high):
+            x = cal.x.copy()
+            x[i] = value
+            points.append(x)
+    fields = forward.evaluate_many(points)
+    columns: dict[str, list] = {name: [] for name in effects}
+    for (name, i, low, high), f_low, f_high in zip(jobs, fields[::2], fields[1::2]):
+        if f_low is None:
+            f_low, low = cal.model_fields, cal.x[i]
+        if f_high is None:
+            f_high, high = cal.model_fields, cal.x[i]
+        column = data.whiten(f_high - f_low) / (high - low) if high > low else np.zeros(data.n)
+        columns[name].append(column)
+    return {name: np.stack(cols, 1) for name, cols in columns.items()}
+
+
+def excess_chi2(cal: Calibration, data: Data) -> float:
+    """chi^2 of the residual above its expectation under noise alone (n - k)."""
+    return cal.chi2 - (data.n - len(cal.free))
+
+
+def score_candidates(cal: Calibration, data: Data, sigs: dict[str, np.ndarray]) -> list[CandidateScore]:
+    """Linearised score test, share explained, confounding and Delta BIC of each candidate."""
+    r = stack(cal.whitened, data.masks)
+    n = r.size
+    q, _ = np.linalg.qr(cal.jac)  # what re-tuning the calibrated parameters can absorb
+    excess = excess_chi2(cal, data)
+    out = []
+    for name, S in sigs.items():
+        S_perp = S - q @ (q.T @ S)
+        beta, *_ = np.linalg.lstsq(S_perp, r, rcond=None)
+        fitted = S_perp @ beta
+        T = float(fitted @ fitted)
+        raw = S @ beta
+        dof = S.shape[1]
+        cls = get_effect(name)
+        out.append(CandidateScore(
+            effect=name, description=cls.description, parameters=cls.qualified_names(), statistic=T, dof=dof,
+            p_value=float(stats.chi2.sf(T, dof)), delta_bic=T - dof * math.log(n),
+            share_explained=float(np.clip((T - dof) / excess, 0, 1)) if excess > 0 else 0.0,
+            confounding=float(np.clip(1 - T / float(raw @ raw), 0, 1)) if raw @ raw > 0 else 1.0,
+            estimate={qn: float(b) for qn, b in zip(cls.qualified_names(), beta)},
+        ))
+    return sorted(out, key=lambda s: -s.delta_bic)
+
+
+def extend(forward: ForwardModel, cal: Calibration, data: Data, effect: str, **kwargs) -> Calibration:
+    """Calibrate ``cal``'s model with ``effect``'s parameters freed (started at their null)."""
+    added = forward.index(get_effect(effect).qualified_names())
+    x0 = cal.x.copy()
+    x0[added] = forward.null[added]
+    return calibrate(forward, data, x0, cal.free + added, label=f"{cal.label} + {effect}", **kwargs)
+
+
+@dataclass
+class Diagnosis:
+    metrics: ResidualMetrics
+    regions: list[RegionResidual]
+    scores: list[CandidateScore]
+    fits: dict[str, Calibration]
+    text: str
+    fe_runs: int
+    seconds: float
+
+    @property
+    def best(self) -> CandidateScore | None:
+        return next((s for s in self.scores if s.explains), None)
+
+
+def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str], half: float, band: float,
+             confirm: int = 2, mesh_resolved: bool = True, **fit_kwargs) -> Diagnosis:
+    """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
+
+    If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
+    (only those with strong evidence) are calibrated for real, and their fitted Delta BIC and
+    share of the excess residual replace the linearised ones.
+    """
+    start, runs0 = time.perf_counter(), forward.runs
+    metrics = residual_metrics(cal, data)
+    regions = rank_regions(cal, data, half, band)
+    scores = score_candidates(cal, data, signatures(forward, cal, data, effects))
+    fits: dict[str, Calibration] = {}
+    if metrics.structured:
+        excess, n = excess_chi2(cal, data), metrics.n_data
+        for s in [s for s in scores if s.delta_bic > STRONG_EVIDENCE][:confirm]:
+            fit = fits[s.effect] = extend(forward, cal, data, s.effect, **fit_kwargs)
+            drop = cal.chi2 - fit.chi2
+            s.delta_bic = drop - s.dof * math.log(n)
+            s.share_explained = float(np.clip((drop - s.dof) / excess, 0, 1)) if excess > 0 else 0.0
+            s.estimate = {q: float(fit.x[forward.names.index(q)]) for q in s.parameters}
+            s.fitted = True
+        scores.sort(key=lambda s: -s.delta_bic)
+    for s in scores:
+        s.explains = metrics.structured and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
+    text = verdict(metrics, scores, regions, mesh_resolved)
+    return Diagnosis(metrics, regions, scores, fits, text, forward.runs - runs0,
+                     time.perf_counter() - start)
+
+
+def verdict(metrics: ResidualMetrics, scores: list[CandidateScore], regions: list[RegionResidual],
+            mesh_resolved: bool = True) -> str:
+    """One paragraph: is the residual noise, where is it not, which candidate explains it.
+
+    ``mesh_resolved`` False (the model's discretisation error exceeds the noise) turns "something
+    outside the registry is missing" into "rerun on a finer mesh first"."""
+    if not metrics.structured:
+        return (f"The residual is consistent with the stated noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
+                f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f}): "
+                "no missing effect is needed.")
+    worst = regions[0]
+    text = (f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
+            f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); it is largest at the "
+            f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1).")
+    best = next((s for s in scores if s.explains), None)
+    if best is None:
+        lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
+        if not mesh_resolved:
+            return (text + " No candidate explains the residual." + lead + " The check's own discretisation error "
+                    "exceeds the noise, so this structure may be the mesh's: rerun on a finer mesh before concluding "
+                    "that something outside the registry is missing.")
+        return text + " No candidate explains the residual." + lead + " Something outside the registry is missing."
+    text += f" Most likely missing: {best.summary()}."
+    effect = get_effect(best.effect)
+    text += " Estimated " + effect.describe({q.split(".", 1)[1]: v for q, v in best.estimate.items()})
+    if best.confounding > 0.8:
+        text += (" It is strongly confounded with the skin parameters: more load frames or membrane designs "
+                 "would separate them.")
+    return text + f" Add it with --add {best.effect}."

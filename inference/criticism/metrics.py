@@ -1,0 +1,173 @@
+"""Is the residual noise? And where is it not: fit metrics, Moran's I and regions."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse, stats
+from scipy.spatial import cKDTree
+
+from inference.criticism.calibration import Calibration
+from inference.criticism.data import Data, stack
+
+ALPHA = 0.01  # posterior-predictive p below which the residual is "structured" (not noise)
+
+
+@dataclass(frozen=True)
+class MoranI:
+    """Moran's I of a residual, its z against the noise model's null and the Monte-Carlo p."""
+
+    I: float  # noqa: E741  (the statistic's name)
+    z: float
+    p: float
+
+
+@dataclass(frozen=True)
+class ResidualMetrics:
+    """How far a calibrated model is from the measurements (:func:`residual_metrics`).
+
+    Strain quantities are log strain [-]; chi^2 is of the whitened residual (noise and carried
+    model error); ``structured``: posterior-predictive p below ALPHA (not noise)."""
+
+    rmse: float
+    rmse_by_component: dict[str, float]  # "xx", "yy", "xy"
+    noise_rms: float  # RMS of the stated noise sd
+    chi2: float
+    dof: int
+    chi2_per_dof: float
+    ppc_p: float
+    moran_I: float
+    moran_z: float
+    moran_p: float
+    bic: float
+    n_data: int
+    n_params: int
+    structured: bool
+
+
+@dataclass(frozen=True)
+class RegionResidual:
+    """RMS standardised residual [sigma] over the points of one named region."""
+
+    region: str
+    points: int
+    rms_sigma: float
+
+
+def neighbour_weights(xy: np.ndarray, k: int = 8) -> sparse.csr_matrix:
+    """Symmetric binary k-nearest-neighbour weights (n, n) on points (n, 2)."""
+    k = min(k, len(xy) - 1)
+    _, idx = cKDTree(xy).query(xy, k + 1)
+    rows = np.repeat(np.arange(len(xy)), k)
+    w = sparse.csr_matrix((np.ones(rows.size), (rows, idx[:, 1:].ravel())), shape=(len(xy),) * 2)
+    return ((w + w.T) > 0).astype(float)
+
+
+def morans_i_statistic(values: np.ndarray, masks: np.ndarray, weights: list[sparse.csr_matrix]) -> float:
+    """Moran's I of (n_obs, n_pts, 3) values, pooled over observations and components.
+
+    Each (observation, component) map is one block of a block-diagonal k-NN weight matrix.
+    """
+    num = den = s0 = 0.0
+    n = 0
+    for o, mask in enumerate(masks):
+        w = weights[o]
+        for c in range(values.shape[-1]):
+            z = values[o, mask, c] - values[o, mask, c].mean()
+            num += z @ (w @ z)
+            den += z @ z
+            s0 += w.sum()
+            n += len(z)
+    return n / s0 * num / den
+
+
+def morans_i(standardised: np.ndarray, data: Data, n_sim: int = 400, seed: int = 0) -> MoranI:
+    """Moran's I of the standardised residual and its null distribution under the noise model.
+
+    The noise itself is spatially correlated, so the null is simulated: I of ``n_sim`` fields
+    drawn from the stated noise model plus the model-error term. z = (I - mean_null) / sd_null; p is the
+    Monte-Carlo p-value for more positive autocorrelation (structure) than noise gives.
+    """
+    weights = [neighbour_weights(data.xy[o, m]) for o, m in enumerate(data.masks)]
+    stat = morans_i_statistic(standardised, data.masks, weights)
+    rng = np.random.default_rng(seed)
+    null_fields = np.zeros((n_sim, *data.fields.shape))
+    for o, m in enumerate(data.masks):
+        draw = data.noise.sample(data.xy[o, m], (n_sim,), rng)
+        if data.model_sd is not None:
+            draw += data.model_sd[o, m] * rng.standard_normal(draw.shape)
+        null_fields[:, o, m] = draw / data.total_sd[o, m]
+    null = np.array([morans_i_statistic(f, data.masks, weights) for f in null_fields])
+    z = (stat - null.mean()) / null.std()
+    return MoranI(float(stat), float(z), float((1 + np.sum(null >= stat)) / (n_sim + 1)))
+
+
+def residual_metrics(cal: Calibration, data: Data, n_draws: int = 4000, seed: int = 0) -> ResidualMetrics:
+    """RMSE [strain], chi^2/dof, posterior-predictive p-value, Moran's I and the verdict.
+
+    The posterior-predictive check uses the realised discrepancy T(y, x) = |whitened residual|^2:
+    draws x_s from the Laplace posterior, replicated data from the model linearised at the
+    optimum plus noise; p = P(T(y_rep, x_s) >= T(y, x_s)).
+    """
+    residual = data.fields - cal.model_fields
+    r = stack(residual, data.masks).reshape(-1, 3)
+    r_tilde = stack(cal.whitened, data.masks)
+    n, k = r_tilde.size, len(cal.free)
+    chi2 = float(r_tilde @ r_tilde)
+    rng = np.random.default_rng(seed)
+    delta = rng.multivariate_normal(np.zeros(k), cal.cov, size=n_draws, method="svd")
+    shift = delta @ cal.jac.T  # (draws, n): model change of each draw
+    t_obs = chi2 - 2 * shift @ r_tilde + np.sum(shift**2, axis=1)
+    t_rep = stats.chi2.rvs(n, size=n_draws, random_state=rng)
+    moran = morans_i(data.standardised(cal.model_fields), data, seed=seed)
+    ppc_p = float(np.mean(t_rep >= t_obs))
+    structured = ppc_p < ALPHA
+    return ResidualMetrics(
+        rmse=float(np.sqrt(np.mean(r**2))),
+        rmse_by_component={c: float(np.sqrt(np.mean(r[:, i] ** 2))) for i, c in enumerate(("xx", "yy", "xy"))},
+        noise_rms=float(np.sqrt(np.mean(data.noise.sd**2))), chi2=chi2, dof=n - k, chi2_per_dof=chi2 / (n - k),
+        ppc_p=ppc_p, moran_I=moran.I, moran_z=moran.z, moran_p=moran.p, bic=chi2 + k * math.log(n),
+        n_data=n, n_params=k, structured=bool(structured),
+    )
+
+
+def region_masks(xy: np.ndarray, half: float, theta_deg: float, band: float) -> dict[str, np.ndarray]:
+    """Points (n, 2) [mm] of each named region around a membrane |x|, |y| <= half [mm].
+
+    ``band`` [mm] is the half-width of the edge strip; the far field (beyond the strip) is
+    split by the angle between a point's position and the fiber direction theta.
+    """
+    ax, ay = np.abs(xy[:, 0]), np.abs(xy[:, 1])
+    ring = np.maximum(ax, ay)
+    corner = (np.abs(ax - half) <= band) & (np.abs(ay - half) <= band)
+    edge = (np.abs(ring - half) <= band) & ~corner
+    far = ring > half + band
+    angle = np.degrees(np.abs(np.arctan2(xy[:, 1], xy[:, 0]) - math.radians(theta_deg))) % 180
+    off = np.minimum(angle, 180 - angle)
+    return {
+        "under the membrane": ring < half - band,
+        "membrane edges": edge,
+        "membrane corners": corner,
+        "far field along the fibers": far & (off <= 30),
+        "far field across the fibers": far & (off >= 60),
+        "far field, oblique to the fibers": far & (off > 30) & (off < 60),
+    }
+
+
+def rank_regions(cal: Calibration, data: Data, half: float, band: float) -> list[RegionResidual]:
+    """Regions ranked by RMS standardised residual (data - model)/sd [sigma]; noise alone gives ~1.
+
+    The sd is the total one (noise and model error); points of every observation are pooled."""
+    theta = float(cal.x[4])
+    squares = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=2)  # (n_obs, n_pts)
+    sums: dict[str, list[float]] = {}
+    for o, m in enumerate(data.masks):
+        for name, inside in region_masks(data.xy[o], half, theta, band).items():
+            sel = inside & m
+            total = sums.setdefault(name, [0.0, 0])
+            total[0] += float(squares[o, sel].sum())
+            total[1] += int(sel.sum())
+    out = [RegionResidual(name, n, math.sqrt(ss / n)) for name, (ss, n) in sums.items() if n]
+    return sorted(out, key=lambda r: -r.rms_sigma)
