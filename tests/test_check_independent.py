@@ -47,7 +47,7 @@ def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_pa
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     disc = report["discretisation"]
     assert disc["sigma"] > 2 and not disc["resolved"]
-    assert "exceeds the noise" in report["verdict"] and "h_membrane <=" in report["verdict"]
+    assert "exceeds the noise" in report["verdict"] and "mesh.h_edge <=" in report["verdict"]
     assert not any(c["explains"] for c in report["candidates"])
     assert "no missing effect is needed" in report["verdict"]
     assert report["failed_runs"] == []

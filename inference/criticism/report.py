@@ -230,7 +230,7 @@ def report_dict(result: CheckResult) -> dict:
         "discretisation": None if result.discretisation is None else {
             "mesh": result.discretisation.mesh, "refined": result.discretisation.refined,
             "relative": result.discretisation.relative, "sigma": result.discretisation.sigma,
-            "resolved": result.discretisation.resolved, "suggested_h_membrane_mm": result.discretisation.suggested_h()},
+            "resolved": result.discretisation.resolved, "suggested_h_edge_mm": result.discretisation.suggested_h_edge()},
         "noise_statement": {"consistent": result.noise_statement.consistent, "factor": result.noise_statement.factor,
                             "used_sd": result.data.noise.sd.tolist()},
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
