@@ -44,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha22", type=float, required=True, help="membrane eigen-strain along y")
     p.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
     p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
 
     p = sub.add_parser("sweep", help="Latin hypercube x designs -> dataset (.h5), resumable")
     _add_config(p)
@@ -61,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("merge", help="join the shard files of one sweep")
     p.add_argument("shards", type=Path, nargs="+", help="shard datasets (.h5)")
     p.add_argument("--out", type=Path, required=True, help="merged dataset (.h5)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
 
     p = sub.add_parser("info", help="summary of a dataset")
     p.add_argument("data", type=Path, help="dataset (.h5)")
@@ -88,6 +90,7 @@ def cmd_simulate(args, comm) -> int:
     from skinfem.io import (
         STATUS_OK,
         FieldWriter,
+        check_output,
         create_dataset,
         write_atomically,
         write_simulation,
@@ -100,6 +103,7 @@ def cmd_simulate(args, comm) -> int:
     design = Design(args.alpha11, args.alpha22)
     if args.out.suffix not in (".h5", ".hdf5"):
         raise ValueError(f"--out must end in .h5, got '{args.out}'")
+    check_output(args.out, args.force)
     model = SkinModel(config, comm, mesh_dir=args.mesh_dir)
     writer = FieldWriter(model, args.fields) if args.fields else None
     try:
@@ -160,8 +164,10 @@ def cmd_sweep(args, comm) -> int:
 
 
 def cmd_merge(args, comm) -> int:
+    from skinfem.io import check_output
     from skinfem.sweep import merge_datasets
 
+    check_output(args.out, args.force)
     if comm.rank == 0:
         data = merge_datasets(args.shards, args.out)
         done = np.count_nonzero(data.status)

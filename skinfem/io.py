@@ -305,6 +305,26 @@ def dataset_summary(data: StrainDataset) -> str:
     return "\n".join(lines)
 
 
+def check_output(path: Path | str, force: bool = False) -> Path:
+    """Refuse an output before any computing: it exists (and ``force`` is not given), is a
+    directory, or its folder cannot be written.
+
+    Raises:
+        ValueError: with one line saying which and what to do.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"--out '{path}' is a directory; give a file name")
+    if path.exists() and not force:
+        raise ValueError(f"--out '{path}' exists; an output is never replaced silently: give --force to replace it")
+    folder = next(p for p in (path.parent, *path.parent.parents) if p.exists())
+    if not folder.is_dir():
+        raise ValueError(f"cannot write --out '{path}': '{folder}' is a file, not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write --out '{path}': '{folder}' is not writable")
+    return path
+
+
 def write_atomically(path: Path | str, write) -> Path:
     """Call ``write(tmp_path)`` and move the result to ``path`` only if it succeeded."""
     path = Path(path)

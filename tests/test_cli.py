@@ -103,3 +103,23 @@ def test_missing_mesh_dir_file_is_reported(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="skinid mesh"):
         read_mesh(tmp_path / "none.msh", MPI.COMM_WORLD)
+
+
+def test_an_existing_output_is_refused_before_any_computing(serial_run, mesh_dir, tmp_path):
+    """simulate and merge never replace a dataset silently; --force does; an output folder that
+    cannot be made is refused before the simulation, not after it."""
+    out, _ = serial_run
+    existing = tmp_path / "existing.h5"
+    existing.write_bytes(b"an 80-simulation dataset")
+    common = ["--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN]
+    res = skinid("simulate", *common, "--out", existing)
+    assert res.returncode == 2 and "exists" in res.stderr and "--force" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and existing.read_bytes() == b"an 80-simulation dataset"
+    res = skinid("merge", str(out), "--out", existing)
+    assert res.returncode == 2 and "--force" in res.stderr and existing.read_bytes() == b"an 80-simulation dataset"
+    res = skinid("merge", str(out), "--out", existing, "--force")
+    assert res.returncode == 0, res.stderr
+    assert StrainDataset.open(existing).status.size == StrainDataset.open(out).status.size == 1
+
+    res = skinid("simulate", *common, "--out", existing / "x.h5")  # a folder that cannot be made
+    assert res.returncode == 2 and "is a file, not a folder" in res.stderr and "simulated" not in res.stdout
