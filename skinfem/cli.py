@@ -24,15 +24,28 @@ ROUTES: dict[str, tuple[str, str]] = {
 
 
 def usage() -> str:
-    lines = ["usage: skinid <command> [options]   (skinid <command> --help for details)", ""]
+    lines = ["usage: skinid <command> [options]   (skinid <command> --help for details; skinid --version)", ""]
     lines += [f"  {name:<10} {help_}" for name, (_, help_) in ROUTES.items()]
     return "\n".join(lines)
+
+
+def version() -> str:
+    """The installed skinid's version ("unknown" when run from a source tree not installed)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("skinid")
+    except metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())
+        return 0
+    if argv[0] == "--version":
+        print(f"skinid {version()}")
         return 0
     if argv[0] not in ROUTES:
         print(f"skinid: unknown command '{argv[0]}'\n\n{usage()}", file=sys.stderr)

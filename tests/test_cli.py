@@ -123,3 +123,10 @@ def test_an_existing_output_is_refused_before_any_computing(serial_run, mesh_dir
 
     res = skinid("simulate", *common, "--out", existing / "x.h5")  # a folder that cannot be made
     assert res.returncode == 2 and "is a file, not a folder" in res.stderr and "simulated" not in res.stdout
+
+
+def test_version_is_the_installed_packages():
+    from importlib import metadata
+
+    res = skinid("--version")
+    assert res.returncode == 0 and res.stdout.strip() == f"skinid {metadata.version('skinid')}"
