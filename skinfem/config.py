@@ -37,9 +37,9 @@ class MeshConfig:
 
     The in-plane grid is a tensor product: uniform cells of ``h_membrane`` under the
     membrane footprint, geometrically graded to about ``h_far`` at the block edge. With
-    ``h_edge`` > 0 the cells at the membrane's edge are ``h_edge`` instead, graded
-    geometrically to ``h_membrane`` at the centre and to ``h_far`` at the block edge (the
-    strain concentrates at the edge; 0: no edge refinement).
+    0 < ``h_edge`` < ``h_membrane`` the cells at the membrane's edge are ``h_edge`` instead,
+    graded geometrically to ``h_membrane`` at the centre and to ``h_far`` at the block edge
+    (the strain concentrates at the edge; 0 or ``h_membrane``: no edge refinement).
     """
 
     length: float = 50.0
@@ -53,6 +53,11 @@ class MeshConfig:
     skin_layers: int = 1
     muscle_layers: int = 5
     membrane_layers: int = 1
+
+    @property
+    def edge_refined(self) -> bool:
+        """The membrane edge has its own, smaller cells (``0 < h_edge < h_membrane``)."""
+        return 0 < self.h_edge < self.h_membrane
 
     def validate(self, prefix: str = "mesh") -> None:
         for f in fields(self):

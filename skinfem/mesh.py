@@ -93,20 +93,30 @@ def _progression_ratio(length: float, h0: float, n: int) -> float:
     return 0.5 * (lo + hi)
 
 
+def edge_cell_size(mesh_cfg: MeshConfig) -> float:
+    """In-plane cell size [mm] at the membrane edge, where the strain concentrates."""
+    if mesh_cfg.edge_refined:
+        return mesh_cfg.h_edge
+    return mesh_cfg.membrane_size / _centre_cells(mesh_cfg)
+
+
+def _centre_cells(mesh_cfg: MeshConfig) -> int:
+    """Cells across the membrane without edge refinement (uniform, about ``h_membrane``)."""
+    return max(2, round(mesh_cfg.membrane_size / mesh_cfg.h_membrane))
+
+
 def inplane_coordinates(mesh_cfg: MeshConfig) -> np.ndarray:
     """Node coordinates (mm) along x (and y): symmetric about 0, refined under the membrane."""
     half = mesh_cfg.length / 2
     a = mesh_cfg.membrane_size / 2
-    if 0 < mesh_cfg.h_edge < mesh_cfg.h_membrane:
-        inner = graded_sizes(a, mesh_cfg.h_edge, mesh_cfg.h_membrane, EDGE_GROWTH)[::-1]  # centre -> edge
+    h_edge, growth = edge_cell_size(mesh_cfg), EDGE_GROWTH if mesh_cfg.edge_refined else np.inf
+    if mesh_cfg.edge_refined:
+        inner = graded_sizes(a, h_edge, mesh_cfg.h_membrane, growth)[::-1]  # centre -> edge
         center = np.concatenate([[0.0], np.cumsum(inner)])
         center = np.concatenate([-center[::-1], center[1:]]) * (a / center[-1])
-        h_edge = mesh_cfg.h_edge
     else:
-        n_center = max(2, round(mesh_cfg.membrane_size / mesh_cfg.h_membrane))
-        center = np.linspace(-a, a, n_center + 1)
-        h_edge = mesh_cfg.membrane_size / n_center
-    outer = graded_sizes(half - a, h_edge, mesh_cfg.h_far, EDGE_GROWTH if mesh_cfg.h_edge else np.inf)
+        center = np.linspace(-a, a, _centre_cells(mesh_cfg) + 1)
+    outer = graded_sizes(half - a, h_edge, mesh_cfg.h_far, growth)
     right = a + np.concatenate([[0.0], np.cumsum(outer)])
     right[-1] = half
     return np.concatenate([-right[::-1], center[1:-1], right])

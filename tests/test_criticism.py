@@ -260,11 +260,12 @@ def test_an_effect_outside_the_candidates_is_not_attributed(linear_world, grid_x
 
 
 def test_refinement_halves_every_size_including_the_membrane_edge(small_config):
-    from inference.criticism.discretisation import edge_size, refined_config
+    from inference.criticism.discretisation import refined_config
+    from skinfem.mesh import edge_cell_size
 
     edged = small_config.with_changes(mesh={"h_edge": 1.5})
     fine = refined_config(edged)
     assert (fine.mesh.h_membrane, fine.mesh.h_edge, fine.mesh.h_far) == (1.0, 0.75, 3.0)
     assert (fine.mesh.skin_layers, fine.mesh.muscle_layers) == (2, 4)
-    assert edge_size(edged) == 1.5 and edge_size(fine) == 0.75
-    assert edge_size(small_config) == 2.0 and refined_config(small_config).mesh.h_edge == 0.0
+    assert edge_cell_size(edged.mesh) == 1.5 and edge_cell_size(fine.mesh) == 0.75
+    assert edge_cell_size(small_config.mesh) == 2.0 and refined_config(small_config).mesh.h_edge == 0.0

@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -37,6 +39,8 @@ def test_edge_refinement_grades_both_ways_from_the_membrane_edge():
     assert growth.max() <= EDGE_GROWTH + 1e-9
     assert 1.5 < h[len(h) // 2] <= 2.0 + 1e-9  # centre cells about h_membrane
     assert x[0] == -25 and x[-1] == 25
+    unrefined = [inplane_coordinates(dataclasses.replace(mesh, h_edge=h)) for h in (0.0, 2.0)]
+    np.testing.assert_array_equal(unrefined[0], unrefined[1])  # h_edge = h_membrane: no refinement
 
 
 def test_graded_sizes_respect_a_largest_growth_ratio():

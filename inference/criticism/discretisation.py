@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from inference.forward import ForwardModel
 from skinfem.config import Config
+from skinfem.mesh import edge_cell_size
 
 
 def refined_config(config: Config) -> Config:
@@ -42,15 +43,9 @@ def refined_config(config: Config) -> Config:
     })
 
 
-def edge_size(config: Config) -> float:
-    """In-plane cell size [mm] at the membrane edge, where the strain concentrates."""
-    m = config.mesh
-    return m.h_edge if 0 < m.h_edge < m.h_membrane else m.membrane_size / max(2, round(m.membrane_size / m.h_membrane))
-
-
 def describe_mesh(config: Config) -> str:
     m, degree = config.mesh, config.solver.element_degree
-    edge = f", {m.h_edge:g} mm at its edge" if 0 < m.h_edge < m.h_membrane else ""
+    edge = f", {m.h_edge:g} mm at its edge" if m.edge_refined else ""
     return (f"Q{degree}, h = {m.h_membrane:g} mm under the membrane{edge} ({m.h_far:g} mm far), "
             f"{m.skin_layers} skin layer{'s' if m.skin_layers > 1 else ''}")
 
@@ -133,7 +128,7 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data) -> D
     error = 2 * shift[m]
     return DiscretisationError(
         mesh=describe_mesh(coarse.config), refined=describe_mesh(fine.config),
-        h_membrane=coarse.config.mesh.h_membrane, h_edge=edge_size(coarse.config), shift=shift,
+        h_membrane=coarse.config.mesh.h_membrane, h_edge=edge_cell_size(coarse.config.mesh), shift=shift,
         relative=float(np.sqrt(np.mean(error**2)) / measured_rms),
         sigma=float(np.sqrt(np.mean((error / data.noise.sd) ** 2))), seconds=time.perf_counter() - start,
     )
