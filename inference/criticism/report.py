@@ -11,6 +11,7 @@ import numpy as np
 from inference.criticism.check import CheckResult
 from inference.plots import pyplot, field_grid, save_figure
 from skinfem.effects import get_effect
+from skinfem.io import write_atomically
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
 
@@ -125,12 +126,6 @@ def failure_lines(result: CheckResult) -> list[str]:
                     for f in result.failures] + [""]
 
 
-def _write_atomically(path: Path, text: str) -> None:
-    partial = path.with_suffix(path.suffix + ".part")
-    partial.write_text(text)
-    partial.replace(path)
-
-
 def _fmt(value: float) -> str:
     return f"{value:.4g}"
 
@@ -213,8 +208,9 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
               f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_read_from_cache} runs read from "
               f"the cache of an earlier run (`fe_runs/`).", ""]
     path = out / "report.md"
-    _write_atomically(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
-    _write_atomically(path, "\n".join(lines))  # last: a report.md means a complete report
+    report_json = json.dumps(report_dict(result), indent=2) + "\n"
+    write_atomically(out / "report.json", lambda tmp: tmp.write_text(report_json))
+    write_atomically(path, lambda tmp: tmp.write_text("\n".join(lines)))  # last: a report.md means a complete report
     return path
 
 
