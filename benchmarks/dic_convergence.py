@@ -117,16 +117,16 @@ def edge_series(xy, mesh_dir) -> dict:
 
 def refinements(xy, mesh_dir) -> dict:
     """How far each one-directional refinement of the Q2 check mesh moves the field."""
-    fields, seconds = {}, {}
+    fields, seconds, dofs = {}, {}, {}
     for name, mesh in REFINEMENTS.items():
-        fields[name], seconds[name], _ = measure(mesh, xy, mesh_dir, warm=False)
+        fields[name], seconds[name], dofs[name] = measure(mesh, xy, mesh_dir, warm=False)
         print(name, seconds[name], flush=True)
     base = fields["base"]
     ring = np.max(np.abs(xy), axis=1)
     rows = []
     for name in list(REFINEMENTS)[1:]:
         diff = fields[name] - base
-        row = {"refinement": name, "mesh": label(REFINEMENTS[name]), "seconds": round(seconds[name], 1),
+        row = {"refinement": name, "mesh": label(REFINEMENTS[name]), "dofs": dofs[name], "seconds": round(seconds[name], 1),
                "relative_rms_change": float(np.sqrt(np.mean(diff**2) / np.mean(base**2)))}
         for band, (lo, hi) in BANDS.items():
             sel = (ring >= lo) & (ring < hi)
@@ -134,7 +134,7 @@ def refinements(xy, mesh_dir) -> dict:
         rows.append(row)
         print(row, flush=True)
     return {"command": "python benchmarks/dic_convergence.py refinements", "base": label(REFINEMENTS["base"]),
-            "base_seconds": round(seconds["base"], 1), "rows": rows}
+            "base_seconds": round(seconds["base"], 1), "base_dofs": dofs["base"], "rows": rows}
 
 
 def meshes(xy, mesh_dir) -> dict:
