@@ -32,6 +32,7 @@ import numpy as np
 from mpi4py import MPI
 
 from skinfem.config import PARAM_NAMES, Config
+from skinfem.continuation import ConvergedStates, Continuation
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
 from skinfem.parallel import collective, on_root
@@ -119,6 +120,10 @@ class FEForward(ForwardModel):
             path, so fewer increments give the same fields faster.
         comm: ranks to spread simulations (parameter points x designs) over; each rank runs
             its own serial model.
+        continuation: start each simulation from the last converged states of its design at
+            nearby parameters, moved along their sensitivities (:mod:`skinfem.continuation`),
+            and ramp the load from zero only when that fails; the fields agree with a ramped
+            simulation's to the Newton tolerance.
         cache_dir: folder of finished simulations to reuse and extend (None: memory only).
             Entries are keyed by the configuration, the designs, frames, points and gauge and
             the parameter vector, so a changed setup never reads stale fields.
@@ -137,7 +142,7 @@ class FEForward(ForwardModel):
     def __init__(self, config: Config, observations: Sequence[PointSet], skin_bounds: np.ndarray,
                  mesh_dir: Path | str = "meshes", increments: int | None = None,
                  comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None,
-                 gauge: StrainGauge = StrainGauge()):
+                 gauge: StrainGauge = StrainGauge(), continuation: bool = True):
         from skinfem.mesh import ensure_mesh
         from skinfem.model import SkinModel
 
@@ -171,36 +176,60 @@ class FEForward(ForwardModel):
         setup = f"{config.to_toml()}\n{self.names}\n{self.designs}\n{self.picks}\n{gauge}\n{points.hex()}"
         self._setup_hash = hashlib.sha256(setup.encode()).hexdigest()
         self.reused = 0  # simulations read from cache_dir instead of run
+        self.continuation = Continuation() if continuation else None
+        self.continued = 0  # simulations started from a nearby point's states instead of ramped
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
-    def _simulate(self, x: np.ndarray, names: tuple[str, ...], j: int) -> np.ndarray:
+    def _simulate(self, x: np.ndarray, names: tuple[str, ...], j: int) -> tuple[np.ndarray, bool]:
         """(n_obs, n_max, 3, 1 + k): the fields of the observations of design ``j``, then their
-        exact derivatives by ``names``; zero for the other designs' observations."""
+        exact derivatives by ``names``; zero for the other designs' observations. Continued from
+        the last converged states of design ``j`` when possible, else ramped from zero; the
+        flag says which."""
         from skinfem.params import Design, SkinParams
 
-        self.model.set_effects(dict(zip(self.names[5:], map(float, x[5:]))))
+        model = self.model
+        model.set_effects(dict(zip(self.names[5:], map(float, x[5:]))))
+        params, design = SkinParams.from_array(x[:5]), Design(*self.designs[j])
+        t_grid = model.load_fractions()
+        frames = sorted({float(t_grid[k]) for jj, k in self.picks if jj == j})
+        indices = self.index(names)
+        d_reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference
         out = np.zeros((len(self.picks), max(self.counts), 3, 1 + len(names)))
-        t_grid = self.model.load_fractions()
-        reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference
+        states = ConvergedStates(np.array(x, dtype=float), None, {})
 
         def at_reference():
+            states.reference = model.u_ref.x.array.copy()
             if names:
-                reference[:] = self.sensitivity(names)
+                d_reference[:] = self.sensitivity(names)
 
         def measure(t):
             k = int(np.argmin(np.abs(t_grid - t)))
             observed = [o for o, pick in enumerate(self.picks) if pick == (j, k)]
-            du = self.sensitivity(names) if observed and names else []
+            if not observed:
+                return
+            du = self.sensitivity(names) if names else []
             for o in observed:
                 gauge, n = self.gauges[o], self.counts[o]
                 out[o, :n, :, 0] = gauge()
-                for i, derivative in enumerate(gauge.derivatives(du, reference)):
+                for i, derivative in enumerate(gauge.derivatives(du, d_reference)):
                     out[o, :n, :, 1 + i] = derivative
+            states.frames[float(t_grid[k])] = model.u.x.array.copy()
+            for i, d_frame, d_ref in zip(indices, du, d_reference):
+                reference = None if d_ref is None else d_ref.x.array.copy()
+                states.sensitivities.setdefault(i, (reference, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
 
-        self.model.simulate(SkinParams.from_array(x[:5]), Design(*self.designs[j]), on_frame=measure,
-                            on_reference=at_reference)
-        return out
+        start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
+        continued = start is not None and model.solve_frames(params, design, start[1], start[0], measure,
+                                                             at_reference)
+        if not continued:
+            out[:] = 0.0
+            states.frames.clear()
+            states.sensitivities.clear()
+            model.simulate(params, design, on_frame=measure, on_reference=at_reference)
+        if self.continuation is not None:
+            self.continuation.record(j, states)
+        return out, continued
 
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
         return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}{suffix}"
@@ -229,16 +258,17 @@ class FEForward(ForwardModel):
                 np.save(f, fields)
         partial.replace(path)  # atomic: a kill leaves either no entry or a whole one
 
-    def _run(self, key: bytes, j: int) -> tuple[np.ndarray | None, str]:
-        """Design ``j``'s part of one point (see :meth:`_simulate`), or (None, why) if Newton
-        failed."""
+    def _run(self, key: bytes, j: int) -> tuple[np.ndarray | None, str, bool]:
+        """Design ``j``'s part of one point and whether it was continued (see
+        :meth:`_simulate`), or (None, why, False) if Newton failed."""
         from skinfem.model import ConvergenceError
 
         x, names = self._decode(key)
         try:
-            return self._simulate(x, names, j), ""
+            fields, continued = self._simulate(x, names, j)
+            return fields, "", continued
         except ConvergenceError as exc:
-            return None, str(exc)
+            return None, str(exc), False
 
     @staticmethod
     def _encode(x: np.ndarray, names: Sequence[str]) -> bytes:
@@ -263,8 +293,9 @@ class FEForward(ForwardModel):
         parts = {u: result for part in self.comm.allgather(mine) for u, result in part.items()}
         for key in todo:
             results = [parts[key, j] for j in range(len(self.designs))]
-            failed = [message for fields, message in results if fields is None]
-            fields = None if failed else sum(f for f, _ in results)  # each design fills its observations
+            failed = [message for fields, message, _ in results if fields is None]
+            fields = None if failed else sum(f for f, _, _ in results)  # each design fills its observations
+            self.continued += sum(continued for _, _, continued in results)
             self._cache[key] = fields
             if failed:
                 self.failures.append(FailedRun(self._decode(key)[0].copy(), failed[0]))

@@ -364,6 +364,75 @@ class SkinModel:
             seconds=seconds,
         )
 
+    def solve_frames(
+        self,
+        params: SkinParams,
+        design: Design,
+        guesses: Sequence[tuple[float, np.ndarray]],
+        reference_guess: np.ndarray | None = None,
+        on_frame: Callable[[float], None] | None = None,
+        on_reference: Callable[[], None] | None = None,
+        max_iterations: int = 8,
+    ) -> bool:
+        """Parameter continuation: solve the equilibria at the load fractions of ``guesses``
+        ((t, dof array) pairs, increasing t) directly, each Newton started from its guess —
+        e.g. the converged state of nearby parameters moved along its sensitivities — instead
+        of ramping the load from zero. ``reference_guess`` starts the unloaded equilibrium of a
+        pre-stressed model (zero if None).
+
+        Equilibrium does not depend on the load path, so where it is unique the states equal
+        :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
+        preconditions the first Newton step (refreshed as in :meth:`simulate`). Callbacks as in
+        :meth:`simulate`.
+
+        Returns:
+            False as soon as a Newton solve fails within ``max_iterations`` (the state is then
+            undefined: ramp with :meth:`simulate`), True when every frame converged.
+        """
+        self._set_max_iterations(max_iterations)
+        try:
+            self.set_params(params)
+            self.factorizations = 0
+            x = self.u.x.array
+            self.u_ref.x.array[:] = 0.0
+            if self.prestressed:
+                x[:] = 0.0 if reference_guess is None else reference_guess
+                self._set_load(0.0, design)
+                if not self._newton_fresh_if_needed(refactor=False)[0]:
+                    return False
+                self.u_ref.x.array[:] = x
+                if on_reference is not None:
+                    on_reference()
+            refactor = False
+            for t, guess in guesses:
+                x[:] = guess
+                self._set_load(t, design)
+                converged, krylov = self._newton_fresh_if_needed(refactor)
+                if not converged:
+                    return False
+                refactor = krylov > self.config.solver.refactor_krylov
+                if on_frame is not None:
+                    on_frame(float(t))
+            return True
+        finally:
+            self._set_max_iterations(self.config.solver.max_iterations)
+
+    def _set_max_iterations(self, n: int) -> None:
+        """Newton iterations per solve (through the options database, which SNES rereads)."""
+        PETSc.Options()[f"{self._prefix}snes_max_it"] = n
+        self.problem.solver.setFromOptions()
+
+    def _newton_fresh_if_needed(self, refactor: bool) -> tuple[bool, float]:
+        """:meth:`_newton` from the current state; if it fails with a stale factorisation,
+        once more from the same start with a fresh one. Returns (converged, GMRES its/step)."""
+        start = self.u.x.array.copy()
+        converged, _, krylov = self._newton(refactor)
+        if converged or refactor or self.config.solver.refactor_krylov == 0:
+            return converged, krylov
+        self.u.x.array[:] = start
+        converged, _, krylov = self._newton(refactor=True)
+        return converged, krylov
+
     @property
     def n_dofs(self) -> int:
         imap = self.V.dofmap.index_map
