@@ -68,6 +68,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                             help="use one measured point per square of this side [mm] (default 1)")
         parser.add_argument("--no-discretisation", action="store_true",
                             help="skip the refined-mesh estimate of the check's discretisation error")
+        parser.add_argument("--refine", choices=["uniform", "edge"], default="uniform",
+                            help="the estimate's refined mesh: every size halved, or only the membrane-edge "
+                                 "cells (for fine or quadratic meshes); layers doubled in both (default uniform)")
         parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
         parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
         parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
@@ -206,7 +209,7 @@ def check_inputs(args):
 
     settings = CheckSettings(candidates=args.candidates or list(EFFECTS), add=args.add, increments=args.increments,
                              confirm=args.confirm, gauge=StrainGauge(args.dic_window), spacing=args.spacing,
-                             discretisation=not args.no_discretisation)
+                             discretisation=not args.no_discretisation, refinement=args.refine)
     emulator = None if args.emulator is None else Emulator.load(args.emulator)
     if args.config is not None:
         config = load_config(args.config)

@@ -231,6 +231,21 @@ class FEForward(ForwardModel):
             self.continuation.record(j, states)
         return out, continued
 
+    def continue_from(self, other: "FEForward") -> None:
+        """Start this model's next simulations from ``other``'s last converged states (another
+        mesh of the same setup, e.g. the refined mesh of a discretisation estimate), each rank
+        from the designs it ran: Newton from the interpolated fields instead of a load ramp."""
+        from skinfem.continuation import transfer
+
+        if self.continuation is None or other.continuation is None:
+            return
+
+        def interpolate():
+            for j in other.continuation.designs():
+                self.continuation.record(j, transfer(other.continuation.states(j), other.model.V, self.model.V))
+
+        collective(self.comm, interpolate)
+
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
         return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}{suffix}"
 

@@ -53,6 +53,13 @@ class Continuation:
             states.sensitivities = previous.sensitivities
         self._last[design] = states
 
+    def designs(self) -> list[Hashable]:
+        """Designs with converged states."""
+        return list(self._last)
+
+    def states(self, design: Hashable) -> ConvergedStates:
+        return self._last[design]
+
     def predict(self, design: Hashable, x: np.ndarray, frames: Sequence[float]
                 ) -> tuple[np.ndarray | None, list[tuple[float, np.ndarray]]] | None:
         """(reference guess, [(t, guess)] for ``frames``) at parameters x, or None if this
@@ -71,3 +78,27 @@ class Continuation:
             for t in frames:
                 guesses[t] += step[i] * d_frames[t]
         return reference, [(t, guesses[t]) for t in sorted(frames)]
+
+
+def transfer(states: ConvergedStates, V_from, V_to) -> ConvergedStates:
+    """``states`` (dof arrays of the serial space ``V_from``) interpolated into the serial space
+    ``V_to`` on another mesh of the same block: a start for a simulation on another mesh (e.g.
+    a refined one) instead of a load ramp."""
+    from skinfem.fenics import dolfinx
+
+    mesh = V_to.mesh
+    cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
+    data = dolfinx.fem.create_interpolation_data(V_to, V_from, cells, padding=1e-8)
+    source, target = dolfinx.fem.Function(V_from), dolfinx.fem.Function(V_to)
+
+    def moved(array):
+        if array is None:
+            return None
+        source.x.array[:] = array
+        target.interpolate_nonmatching(source, cells, data)
+        return target.x.array.copy()
+
+    sensitivities = {i: (moved(d_ref), {t: moved(d) for t, d in d_frames.items()})
+                     for i, (d_ref, d_frames) in states.sensitivities.items()}
+    return ConvergedStates(states.x.copy(), moved(states.reference),
+                           {t: moved(u) for t, u in states.frames.items()}, sensitivities)

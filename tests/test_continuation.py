@@ -93,3 +93,65 @@ def test_a_failed_continuation_falls_back_to_the_ramp(small_config, mesh_dir, mo
     x[0] *= 1.2
     np.testing.assert_array_equal(warm(x), ramped(x))
     assert warm.continued == 0
+
+
+def test_transfer_between_meshes_is_exact_for_affine_fields():
+    """States interpolated from a Q1 mesh into a Q2 space on another mesh of the same block:
+    affine fields (which both spaces represent exactly) arrive unchanged."""
+    from skinfem.continuation import transfer
+    from skinfem.fenics import dolfinx
+
+    def space(n, degree):
+        mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[-1.0, -1.0, -0.5], [1.0, 1.0, 0.0]], n,
+                                       dolfinx.mesh.CellType.hexahedron)
+        return dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (3,)))
+
+    V_from, V_to = space([3, 4, 2], 1), space([5, 2, 3], 2)
+    A = np.array([[0.1, -0.2, 0.3], [0.05, 0.0, -0.1], [0.2, 0.1, 0.0]])
+
+    def affine(V, scale):
+        u = dolfinx.fem.Function(V)
+        u.interpolate(lambda x: scale * (A @ x + 0.01))
+        return u.x.array.copy()
+
+    states = ConvergedStates(np.ones(2), affine(V_from, 0.5), {1.0: affine(V_from, 1.0)},
+                             {1: (None, {1.0: affine(V_from, 2.0)})})
+    moved = transfer(states, V_from, V_to)
+    np.testing.assert_allclose(moved.reference, affine(V_to, 0.5), atol=1e-12)
+    np.testing.assert_allclose(moved.frames[1.0], affine(V_to, 1.0), atol=1e-12)
+    assert moved.sensitivities[1][0] is None
+    np.testing.assert_allclose(moved.sensitivities[1][1][1.0], affine(V_to, 2.0), atol=1e-12)
+
+
+def test_edge_refinement_halves_only_the_edge_cells_and_doubles_the_layers(small_config):
+    from inference.criticism.discretisation import refined_config
+
+    m = small_config.mesh
+    refined = refined_config(small_config, "edge").mesh
+    assert (refined.h_membrane, refined.h_far, refined.h_edge) == (m.h_membrane, m.h_far, m.h_membrane / 2)
+    assert (refined.skin_layers, refined.muscle_layers) == (2 * m.skin_layers, 2 * m.muscle_layers)
+    twice = refined_config(small_config.with_changes(mesh={"h_edge": 0.5}), "edge").mesh
+    assert twice.h_edge == 0.25
+    with pytest.raises(ValueError, match="unknown refinement"):
+        refined_config(small_config, "nowhere")
+
+
+@pytest.mark.slow
+def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_config, mesh_dir):
+    """The discretisation estimate's refined mesh started from the check mesh's interpolated
+    fields (not a load ramp) gives the refined mesh's own ramped fields."""
+    from inference.criticism.discretisation import refined_config
+
+    coarse = two_design_forward(small_config, mesh_dir, continuation=True)
+    x = coarse.null.copy()
+    x[:5] = TRUTH
+    x[coarse.names.index("pre_stretch.eps_xx")] = 0.03
+    coarse.evaluate_with_jacobian([x], coarse.names[:5])
+    fine_config = refined_config(small_config, "edge")
+    fine = two_design_forward(fine_config, mesh_dir, continuation=True)
+    fine.continue_from(coarse)
+    x[0] *= 1.05  # the estimate runs at the calibrated point, near the last one
+    f_continued = fine(x)
+    f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
+    assert fine.continued == 2
+    np.testing.assert_allclose(f_continued, f_ramped, atol=1e-8 * np.abs(f_ramped).max())

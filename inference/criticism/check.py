@@ -20,7 +20,8 @@ from mpi4py import MPI
 from inference.criticism.calibration import Calibration, calibrate
 from inference.criticism.data import Data, NoiseModel
 from inference.criticism.diagnosis import Diagnosis, NoiseStatement, check_noise_statement, diagnose, extend
-from inference.criticism.discretisation import CorrectedForward, DiscretisationError, estimate, refined_config
+from inference.criticism.discretisation import (REFINEMENTS, CorrectedForward, DiscretisationError, estimate,
+                                                refined_config)
 from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
 from inference.forward import FailedRun, FEForward, ForwardModel
 from inference.observations import Measurement, map_to_cells
@@ -45,6 +46,8 @@ class CheckSettings:
         gauge: the DIC strain window the measurement was made with.
         spacing: the measured points are thinned to one per square of this side [mm].
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
+        refinement: the refined mesh of that estimate, ``"uniform"`` or ``"edge"`` (see
+            :func:`inference.criticism.discretisation.refined_config`).
     """
 
     candidates: list[str] = field(default_factory=lambda: list(EFFECTS))
@@ -56,12 +59,15 @@ class CheckSettings:
     gauge: StrainGauge = field(default_factory=StrainGauge)
     spacing: float = 1.0
     discretisation: bool = True
+    refinement: str = "uniform"
 
     def __post_init__(self):
         for name in [*self.candidates, *self.add]:
             get_effect(name)
         if len(set(self.add)) != len(self.add):
             raise ValueError("--add lists an effect twice")
+        if self.refinement not in REFINEMENTS:
+            raise ValueError(f"unknown refinement {self.refinement!r}; choose one of {', '.join(REFINEMENTS)}")
         if not self.spacing > 0:
             raise ValueError(f"the point spacing must be > 0 mm, got {self.spacing}")
 
@@ -169,8 +175,8 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     band = settings.band or 2 * config.mesh.h_membrane
 
     t0, runs0 = time.perf_counter(), forward.runs
-    refined = lambda: FEForward(refined_config(forward.config), measurements, skin_bounds, mesh_dir,  # noqa: E731
-                                None, comm, cache_dir, settings.gauge)
+    refined = lambda: FEForward(refined_config(forward.config, settings.refinement), measurements,  # noqa: E731
+                                skin_bounds, mesh_dir, None, comm, cache_dir, settings.gauge)
     model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
     baseline, data, noise_statement = check_noise_statement(model, baseline, data, settings.max_iterations // 2)
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
@@ -207,6 +213,7 @@ def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, st
     if not settings.discretisation:
         return forward, data, baseline, None
     fine = refined()
+    fine.continue_from(forward)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data)
     model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd(data.xy, data.masks))
     baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
