@@ -215,7 +215,7 @@ def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, st
     fine = refined()
     fine.continue_from(forward)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data)
-    model, data = CorrectedForward(forward, disc.shift), data.with_model_sd(disc.sd(data.xy, data.masks))
+    model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
     timings.refined_fe_runs, timings.refined_s = fine.runs, disc.seconds
     return model, data, baseline, disc

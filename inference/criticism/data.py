@@ -30,33 +30,37 @@ class NoiseModel:
             raise ValueError(f"noise sd must be three positive numbers (xx, yy, xy), got {self.sd}")
         correlation_matrix(np.zeros((1, 2)), self.length, self.nugget)  # validates both
 
-    def whiteners(self, xy: np.ndarray, model_sd: np.ndarray | None = None) -> list[np.ndarray]:
+    def whiteners(self, xy: np.ndarray, model_sd: np.ndarray | None = None,
+                  model_correlation: tuple[float, float] = (0.0, 1.0)) -> list[np.ndarray]:
         """Symmetric Sigma_c^(-1/2) (m, m) per component c for points xy (m, 2), cached.
 
-        Sigma_c = sd_c^2 R + diag(model_sd[:, c]^2): the correlated noise plus an independent
-        model-form error of standard deviation ``model_sd`` (m, 3) (None: no model error).
+        Sigma_c = sd_c^2 R + D_c R_m D_c: the correlated noise plus a model-form error of
+        standard deviation D_c = diag(``model_sd[:, c]``) (m, 3) and correlation R_m of
+        ``model_correlation`` = (length [mm], nugget) (``model_sd`` None: no model error).
         """
-        key = ("whiten", xy.tobytes(), None if model_sd is None else model_sd.tobytes())
+        key = ("whiten", xy.tobytes(), None if model_sd is None else model_sd.tobytes(), model_correlation)
         if key not in self._roots:
             corr = correlation_matrix(xy, self.length, self.nugget)
             if model_sd is None:
                 root = inverse_sqrt(corr)
                 self._roots[key] = [root / s for s in self.sd]
             else:
-                self._roots[key] = [inverse_sqrt(s**2 * corr + np.diag(model_sd[:, c] ** 2))
+                model_corr = correlation_matrix(xy, *model_correlation)
+                self._roots[key] = [inverse_sqrt(s**2 * corr + model_sd[:, c, None] * model_corr * model_sd[None, :, c])
                                     for c, s in enumerate(self.sd)]
         return self._roots[key]
 
     def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray,
-               model_sd: np.ndarray | None = None) -> np.ndarray:
+               model_error: "ModelError | None" = None) -> np.ndarray:
         """(n_obs, n_pts, 3) residual -> whitened residual (NaN off the mask).
 
-        ``xy`` (n_obs, n_pts, 2) points, ``masks`` (n_obs, n_pts), ``model_sd`` (n_obs, n_pts, 3)
-        or None: see :meth:`whiteners`."""
+        ``xy`` (n_obs, n_pts, 2) points, ``masks`` (n_obs, n_pts), ``model_error`` or None: see
+        :meth:`whiteners`."""
         out = np.full(residual.shape, np.nan)
         for o, mask in enumerate(masks):
-            extra = None if model_sd is None else model_sd[o, mask]
-            for c, root in enumerate(self.whiteners(xy[o, mask], extra)):
+            extra = None if model_error is None else model_error.sd[o, mask]
+            correlation = (0.0, 1.0) if model_error is None else (model_error.length, model_error.nugget)
+            for c, root in enumerate(self.whiteners(xy[o, mask], extra, correlation)):
                 out[o, mask, c] = root @ residual[o, mask, c]
         return out
 
@@ -67,6 +71,23 @@ class NoiseModel:
             w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
             self._roots[key] = v * np.sqrt(np.maximum(w, 0))
         return noise_fields(self._roots[key], self.sd, shape, rng)
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """The model's own error at the measured points (e.g. its discretisation error), carried
+    next to the noise as a Gaussian field: sd (n_obs, n_pts, 3) [strain] and the correlation
+    (1 - nugget) RBF(length) + nugget I between points (length 0: independent)."""
+
+    sd: np.ndarray
+    length: float = 0.0
+    nugget: float = 0.0
+
+    def sample(self, xy: np.ndarray, o: int, mask: np.ndarray, shape: tuple[int, ...],
+               rng: np.random.Generator) -> np.ndarray:
+        """Draws (*shape, m, 3) of observation ``o``'s error at its measured points xy (m, 2)."""
+        w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
+        return noise_fields(v * np.sqrt(np.maximum(w, 0)), np.ones(3), shape, rng) * self.sd[o, mask]
 
 
 def inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
@@ -91,15 +112,15 @@ class Data:
         masks: (n_obs, n_pts) True where a point is measured.
         xy: (n_obs, n_pts, 2) points [mm].
         noise: the stated measurement noise.
-        model_sd: (n_obs, n_pts, 3) or None: standard deviation of the model's own error at the
-            points (discretisation), carried as an independent variance next to the noise.
+        model_error: the model's own error at the points (discretisation) or None, carried as
+            a correlated variance next to the noise.
     """
 
     fields: np.ndarray
     masks: np.ndarray
     xy: np.ndarray
     noise: NoiseModel
-    model_sd: np.ndarray | None = None
+    model_error: ModelError | None = None
 
     @classmethod
     def from_points(cls, observations: list, noise: NoiseModel) -> "Data":
@@ -112,8 +133,8 @@ class Data:
             fields[i, : len(o.xy)], xy[i, : len(o.xy)], masks[i, : len(o.xy)] = o.strain, o.xy, True
         return cls(fields, masks, xy, noise)
 
-    def with_model_sd(self, model_sd: np.ndarray | None) -> "Data":
-        return Data(self.fields, self.masks, self.xy, self.noise, model_sd)
+    def with_model_error(self, model_error: ModelError | None) -> "Data":
+        return Data(self.fields, self.masks, self.xy, self.noise, model_error)
 
     @property
     def n(self) -> int:
@@ -123,15 +144,15 @@ class Data:
     def total_sd(self) -> np.ndarray:
         """(n_obs, n_pts, 3) per-point sd of noise and model error together."""
         sd = np.broadcast_to(self.noise.sd, self.fields.shape)
-        return sd if self.model_sd is None else np.sqrt(sd**2 + self.model_sd**2)
+        return sd if self.model_error is None else np.sqrt(sd**2 + self.model_error.sd**2)
 
     def standardised(self, model_fields: np.ndarray) -> np.ndarray:
         """(data - model) / total sd per component, NaN off the mask (still spatially correlated)."""
         return (self.fields - model_fields) / self.total_sd
 
     def whitened_residual(self, model_fields: np.ndarray) -> np.ndarray:
-        return self.noise.whiten(self.fields - model_fields, self.xy, self.masks, self.model_sd)
+        return self.noise.whiten(self.fields - model_fields, self.xy, self.masks, self.model_error)
 
     def whiten(self, fields: np.ndarray) -> np.ndarray:
         """Stacked whitened (n,) of any (n_obs, n_pts, 3) field difference."""
-        return stack(self.noise.whiten(fields, self.xy, self.masks, self.model_sd), self.masks)
+        return stack(self.noise.whiten(fields, self.xy, self.masks, self.model_error), self.masks)

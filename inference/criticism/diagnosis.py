@@ -55,7 +55,7 @@ def check_noise_statement(forward: ForwardModel, cal: Calibration, data: Data,
         return cal, data, statement
     statement.consistent, statement.factor = False, math.sqrt(metrics.chi2_per_dof)
     noise = NoiseModel(data.noise.sd * statement.factor, data.noise.length, data.noise.nugget)
-    data = Data(data.fields, data.masks, data.xy, noise, data.model_sd)
+    data = Data(data.fields, data.masks, data.xy, noise, data.model_error)
     return calibrate(forward, data, cal.x, cal.free, cal.label, max_iterations), data, statement
 
 

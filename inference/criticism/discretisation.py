@@ -10,8 +10,9 @@ of the surface strain (Q1 near the membrane's edges and corners) the error of f_
   x', a two-level correction that treats the shift as constant near x), so that it compares
   at the refined mesh's accuracy, and
 - **carries** the remaining error, sd = the local RMS of the shift (within h of the point) per
-  component, as an independent model-form variance next to the noise (:attr:`inference.criticism.Data.model_sd`), so that a
-  residual the mesh explains is not called a missing effect.
+  component, correlated over the shift's own correlation length, as a model-form variance
+  next to the noise (:class:`inference.criticism.data.ModelError`), so that a residual the
+  mesh explains is not called a missing effect.
 
 If the refined mesh's error is still above the noise, the report says so and names the cell
 size at the membrane edge (``mesh.h_edge``), where the error lives, that would bring it to half
@@ -27,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from inference.criticism.data import ModelError
 from inference.forward import ForwardModel
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
@@ -102,6 +104,15 @@ class DiscretisationError:
             out[o, m] = np.sqrt([squares[i].mean(axis=0) for i in near])
         return out
 
+    def model_error(self, xy: np.ndarray, masks: np.ndarray) -> ModelError:
+        """The corrected model's remaining error as a correlated field: sd of :meth:`sd` and the
+        correlation of the shift itself (:func:`correlation_fit`). Errors of one
+        discretisation are smooth over a few cells; carried as independent per point they
+        would make the calibrated parameters' Laplace sd too small."""
+        sd = self.sd(xy, masks)
+        standardised = np.divide(self.shift, sd, out=np.zeros_like(sd), where=sd > 0)
+        return ModelError(sd, *correlation_fit(standardised, xy, masks, self.h_membrane))
+
     @property
     def resolved(self) -> bool:
         """The corrected model's error (sigma / 2) is below half the noise."""
@@ -124,6 +135,31 @@ class DiscretisationError:
                      f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it; quadratic elements "
                      "(solver.element_degree = 2) with two skin layers converge faster (docs/criticism.md).")
         return text
+
+
+def correlation_fit(field: np.ndarray, xy: np.ndarray, masks: np.ndarray, h: float) -> tuple[float, float]:
+    """(length [mm], nugget) of the correlation (1 - nugget) exp(-d^2 / 2 length^2) of a
+    standardised field (n_obs, n_pts, 3) at points xy, fitted by least squares to the
+    empirical correlation of point pairs in distance bins of width h / 2 out to 4 h
+    (length on a grid of 0 to 4 h; length 0 means independent points, nugget 1)."""
+    edges = np.arange(0.0, 4 * h + 1e-9, h / 2)
+    products, squares = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)
+    for o, m in enumerate(masks):
+        points, values = xy[o, m], field[o, m]
+        pairs = cKDTree(points).query_pairs(edges[-1], output_type="ndarray")
+        d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+        k = np.searchsorted(edges, d, side="right") - 1
+        np.add.at(products, k, np.sum(values[pairs[:, 0]] * values[pairs[:, 1]], axis=1))
+        np.add.at(squares, k, 0.5 * np.sum(values[pairs[:, 0]] ** 2 + values[pairs[:, 1]] ** 2, axis=1))
+    used = squares > 0
+    rho = products[used] / squares[used]
+    centres = (0.5 * (edges[1:] + edges[:-1]))[used]
+    best = (np.sum(rho**2), 0.0, 1.0)  # independent points
+    for length in np.linspace(h / 20, 4 * h, 80):
+        shape = np.exp(-centres**2 / (2 * length**2))
+        scale = float(np.clip(shape @ rho / (shape @ shape), 0.0, 1.0))  # = 1 - nugget
+        best = min(best, (float(np.sum((rho - scale * shape) ** 2)), float(length), 1.0 - scale))
+    return best[1], best[2]
 
 
 def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data) -> DiscretisationError:

@@ -96,8 +96,8 @@ def morans_i(standardised: np.ndarray, data: Data, n_sim: int = 400, seed: int =
     null_fields = np.zeros((n_sim, *data.fields.shape))
     for o, m in enumerate(data.masks):
         draw = data.noise.sample(data.xy[o, m], (n_sim,), rng)
-        if data.model_sd is not None:
-            draw += data.model_sd[o, m] * rng.standard_normal(draw.shape)
+        if data.model_error is not None:
+            draw += data.model_error.sample(data.xy[o, m], o, m, (n_sim,), rng)
         null_fields[:, o, m] = draw / data.total_sd[o, m]
     null = np.array([morans_i_statistic(f, data.masks, weights) for f in null_fields])
     z = (stat - null.mean()) / null.std()

@@ -114,7 +114,10 @@ def discretisation_lines(result: CheckResult) -> list[str]:
             "| | RMS, share of the field | RMS [noise sd] |", "|---|---|---|",
             f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
             f"| after the refined-mesh correction (carried in the covariance) | {disc.relative / 2:.1%} | "
-            f"{disc.sigma / 2:.2f} |", ""]
+            f"{disc.sigma / 2:.2f} |", "",
+            f"The carried error is correlated between points like the two meshes' difference: "
+            f"{1 - result.data.model_error.nugget:.0%} of its variance over {result.data.model_error.length:.2g} mm, "
+            "the rest independent.", ""]
 
 
 def failure_lines(result: CheckResult) -> list[str]:
@@ -226,7 +229,9 @@ def report_dict(result: CheckResult) -> dict:
         "discretisation": None if result.discretisation is None else {
             "mesh": result.discretisation.mesh, "refined": result.discretisation.refined,
             "relative": result.discretisation.relative, "sigma": result.discretisation.sigma,
-            "resolved": result.discretisation.resolved, "suggested_h_edge_mm": result.discretisation.suggested_h_edge()},
+            "resolved": result.discretisation.resolved, "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
+            "carried_correlation_length_mm": result.data.model_error.length,
+            "carried_nugget": result.data.model_error.nugget},
         "noise_statement": {"consistent": result.noise_statement.consistent, "factor": result.noise_statement.factor,
                             "used_sd": result.data.noise.sd.tolist()},
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
