@@ -17,9 +17,11 @@ Formulation (see README "Forward model"):
   at a relative ``solver.krylov_rtol`` or once its residual is below a tenth of the Newton
   tolerance ``solver.atol``; the initial guess of each increment is the quadratic through
   the three previous converged states (linear after the first increment), which saves the
-  third Newton iteration of most increments; an increment that fails is retried once with a
-  fresh factorisation, then halved (cut-back) up to ``solver.max_cutbacks`` times; frames
-  are still reported at the requested t.
+  third Newton iteration of most increments; an increment that fails is retried from the
+  same predictor with a fresh factorisation, then with one at every Newton step (a large
+  first Newton step can make the factorisation stale within one solve, so that GMRES
+  stalls although Newton converges), then halved (cut-back) up to ``solver.max_cutbacks``
+  times; frames are still reported at the requested t.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import IntEnum
 
 import numpy as np
 from mpi4py import MPI
@@ -38,6 +41,14 @@ from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_
 from skinfem.effects import ModelTerms, get_effect
 from skinfem.params import Design, SkinParams
 from skinfem.strain import SkinStrainSampler, top_skin_cells
+
+
+class Factorisation(IntEnum):
+    """When a Newton solve factorises the tangent (its GMRES preconditioner)."""
+
+    REUSE = 0  # keep the last factorisation
+    FIRST_STEP = 1  # factorise at the first Newton step, then reuse it
+    EVERY_STEP = 2  # factorise at every Newton step (Newton–LU)
 
 
 class ConvergenceError(RuntimeError):
@@ -159,6 +170,7 @@ class SkinModel:
             },
         )
         self.factorizations = 0  # of the current simulation
+        self._rebuild_pending = False  # the next Newton solve factorises at its first step
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
         cells = top_skin_cells(mesh, self.cell_tags, TAGS["skin"], depth)
         # strain is measured from the unloaded equilibrium u_ref (zero unless pre-stressed)
@@ -261,25 +273,48 @@ class SkinModel:
                 "ksp_atol": 0.1 * solver.atol, "ksp_gmres_restart": 100, "ksp_max_it": 100,
                 "snes_lag_preconditioner_persists": True}
 
-    def _newton(self, refactor: bool) -> tuple[bool, int, float]:
-        """One SNES solve; ``refactor`` factorises the tangent at its first iteration, else the
-        last factorisation preconditions GMRES. Returns (converged, Newton iterations, GMRES
-        iterations per Newton step)."""
+    def _set_lag(self, lag: int) -> None:
+        """PETSc's preconditioner lag: 1 rebuild at every Jacobian, -2 at the next one only and
+        then never (through the options database, which SNES rereads)."""
+        key = f"{self._prefix}snes_lag_preconditioner"
+        options = PETSc.Options()
+        options[key] = lag
+        self.problem.solver.setFromOptions()
+        del options[key]
+
+    def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
+        """One SNES solve from the current state, factorising the tangent as ``policy`` says
+        (with ``solver.refactor_krylov = 0`` at every Newton step regardless). Returns
+        (converged, Newton iterations, GMRES iterations per Newton step)."""
         snes = self.problem.solver
         reuse = self.config.solver.refactor_krylov > 0
-        if reuse and refactor:  # lag -2: rebuild at the next Jacobian, then never until told again
-            key = f"{self._prefix}snes_lag_preconditioner"
-            options = PETSc.Options()
-            options[key] = -2
-            snes.setFromOptions()
-            del options[key]
+        if self._rebuild_pending:  # PETSc factorises at this solve's first step anyway
+            policy = max(policy, Factorisation.FIRST_STEP)
+        if reuse and policy != Factorisation.REUSE:
+            self._set_lag(1 if policy == Factorisation.EVERY_STEP else -2)
         self.problem.solve()
+        self._rebuild_pending = reuse and policy == Factorisation.EVERY_STEP
+        if self._rebuild_pending:  # lag back from 1; PETSc accepts "never" only after a rebuild
+            self._set_lag(-2)
         reason = snes.getConvergedReason()
         its = snes.getIterationNumber()
-        self.factorizations += (1 if refactor else 0) if reuse else its
+        self.factorizations += its if not reuse or policy == Factorisation.EVERY_STEP else int(policy)
         ok = reason > 0 and np.all(np.isfinite(self.u.x.array))
         ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
         return ok, its, snes.getLinearSolveIterations() / max(its, 1)
+
+    def _newton_escalating(self, policy: Factorisation) -> tuple[bool, int, float]:
+        """:meth:`_newton` from the current state; after a failure once more from the same start
+        with each more frequent factorisation up to Newton–LU: a stale factorisation, or one
+        made stale by a large first Newton step, can stall GMRES (DIVERGED_LINEAR_SOLVE)
+        where Newton itself converges. Returns the last attempt's result."""
+        start = self.u.x.array.copy()
+        while True:
+            converged, its, krylov = self._newton(policy)
+            if converged or policy == Factorisation.EVERY_STEP or self.config.solver.refactor_krylov == 0:
+                return converged, its, krylov
+            self.u.x.array[:] = start
+            policy = Factorisation(policy + 1)
 
     def load_fractions(self) -> np.ndarray:
         n = self.config.solver.increments
@@ -310,7 +345,7 @@ class SkinModel:
         self.u_ref.x.array[:] = 0.0
         if self.prestressed:
             self._set_load(0.0, design)
-            converged, _, _ = self._newton(refactor=True)
+            converged, _, _ = self._newton_escalating(Factorisation.FIRST_STEP)
             if not converged:
                 raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
             self.u_ref.x.array[:] = x
@@ -321,7 +356,7 @@ class SkinModel:
         t, step = 0.0, base_step
         history: list[tuple[float, np.ndarray]] = []  # (t, u) of up to two earlier states
         frames, iterations, cutbacks = [], [], 0
-        refactor = True  # new parameters: a fresh factorisation
+        policy = Factorisation.FIRST_STEP  # new parameters: a fresh factorisation
         for target in targets:
             while t < target - 1e-12:
                 step = min(step, target - t)
@@ -329,18 +364,16 @@ class SkinModel:
                 saved = x.copy()
                 x[:] = extrapolate(t_new, [(t, saved), *history])
                 self._set_load(t_new, design)
-                converged, its, krylov = self._newton(refactor)
+                converged, its, krylov = self._newton_escalating(policy)
                 if converged:
                     history = [(t, saved), *history[:1]]
                     t = t_new
                     iterations.append(its)
                     step = min(2 * step, base_step)
-                    refactor = krylov > refactor_krylov
+                    policy = Factorisation.FIRST_STEP if krylov > refactor_krylov else Factorisation.REUSE
                     continue
                 x[:] = saved
-                if not refactor:  # the stale factorisation may be to blame: retry with a fresh one
-                    refactor = True
-                    continue
+                policy = Factorisation.FIRST_STEP
                 cutbacks += 1
                 step /= 2
                 if cutbacks > self.config.solver.max_cutbacks:
@@ -398,19 +431,19 @@ class SkinModel:
             if self.prestressed:
                 x[:] = 0.0 if reference_guess is None else reference_guess
                 self._set_load(0.0, design)
-                if not self._newton_fresh_if_needed(refactor=False)[0]:
+                if not self._newton_escalating(Factorisation.REUSE)[0]:
                     return False
                 self.u_ref.x.array[:] = x
                 if on_reference is not None:
                     on_reference()
-            refactor = False
+            policy = Factorisation.REUSE
             for t, guess in guesses:
                 x[:] = guess
                 self._set_load(t, design)
-                converged, krylov = self._newton_fresh_if_needed(refactor)
+                converged, _, krylov = self._newton_escalating(policy)
                 if not converged:
                     return False
-                refactor = krylov > self.config.solver.refactor_krylov
+                policy = Factorisation.FIRST_STEP if krylov > self.config.solver.refactor_krylov else Factorisation.REUSE
                 if on_frame is not None:
                     on_frame(float(t))
             return True
@@ -421,17 +454,6 @@ class SkinModel:
         """Newton iterations per solve (through the options database, which SNES rereads)."""
         PETSc.Options()[f"{self._prefix}snes_max_it"] = n
         self.problem.solver.setFromOptions()
-
-    def _newton_fresh_if_needed(self, refactor: bool) -> tuple[bool, float]:
-        """:meth:`_newton` from the current state; if it fails with a stale factorisation,
-        once more from the same start with a fresh one. Returns (converged, GMRES its/step)."""
-        start = self.u.x.array.copy()
-        converged, _, krylov = self._newton(refactor)
-        if converged or refactor or self.config.solver.refactor_krylov == 0:
-            return converged, krylov
-        self.u.x.array[:] = start
-        converged, _, krylov = self._newton(refactor=True)
-        return converged, krylov
 
     @property
     def n_dofs(self) -> int:

@@ -3,6 +3,7 @@ bad measurements get one clear line."""
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import textwrap
@@ -130,28 +131,45 @@ def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path)
     assert not (tmp_path / "report" / "report.md").exists()
 
 
-@pytest.mark.slow
-def test_box_corners_converge_or_are_rejected_cleanly(small_config, mesh_dir):
-    """Every corner of the prior box that the calibration can reach, with every effect at a
-    prior bound, returns fields or None (a recorded failure), never an exception."""
+def corner_forward(config, mesh_dir, alpha):
+    """The serial FE forward model (all effects, 2 increments) of one design on a 3 mm grid."""
     from mpi4py import MPI
 
     from inference.forward import FEForward, PointSet
 
-    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    bounds = np.array([config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
     g = np.linspace(-18, 18, 13)
-    obs = [PointSet(np.array([0.05, -0.05]), 1.0, np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
-    fe = FEForward(small_config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF)
-    rng = np.random.default_rng(0)
+    obs = [PointSet(np.array(alpha), 1.0, np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
+    return FEForward(config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, continuation=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("alpha", [(0.05, -0.05), (-0.05, -0.05)])
+def test_newton_converges_at_every_corner_of_the_skin_box(small_config, mesh_dir, alpha):
+    """All 32 corners of the Table-1 box (mu, k1, k2, kappa, theta), for the mixed design and
+    biaxial compression. (Before GMRES stalls were escalated to a factorisation at every
+    Newton step, 17 of 32 corners with effects at their bounds failed as 'Newton failed'.)"""
+    fe = corner_forward(small_config, mesh_dir, alpha)
     corners = []
-    for _ in range(6):
-        x = np.where(rng.random(len(fe.names)) < 0.5, fe.bounds[:, 0], fe.bounds[:, 1])
+    for corner in itertools.product([0, 1], repeat=5):
+        x = fe.null.copy()
+        x[:5] = fe.bounds[np.arange(5), corner]
         corners.append(x)
-    soft = fe.null.copy()  # soft skin, stiff isotropic fibers: Newton's hardest corner seen so far
-    soft[:5] = [bounds[0, 0], bounds[1, 1], bounds[2, 0], bounds[3, 1], 30.0]
-    fields = fe.evaluate_many(corners + [soft])
+    fields = fe.evaluate_many(corners)
+    assert fe.failures == []
+    assert all(np.all(np.isfinite(f)) and np.abs(f).max() > 0.01 for f in fields)
+
+
+@pytest.mark.slow
+def test_box_corners_with_effects_at_their_bounds_converge_or_are_rejected_cleanly(small_config, mesh_dir):
+    """Corners of the prior box with every effect at a prior bound return fields or None (a
+    recorded failure), never an exception; most converge."""
+    fe = corner_forward(small_config, mesh_dir, (0.05, -0.05))
+    rng = np.random.default_rng(0)
+    corners = [np.where(rng.random(len(fe.names)) < 0.5, fe.bounds[:, 0], fe.bounds[:, 1]) for _ in range(8)]
+    fields = fe.evaluate_many(corners)
     assert all(f is None or np.all(np.isfinite(f)) for f in fields)
-    assert len(fe.failures) == sum(f is None for f in fields)
+    assert len(fe.failures) == sum(f is None for f in fields) <= 2
     assert all("Newton failed" in failure.message for failure in fe.failures)
 
 
