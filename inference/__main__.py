@@ -52,8 +52,12 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
         parser.add_argument("--config", help="preset or TOML of the mesh the check runs on "
                                              "(default: the emulator's dataset configuration)")
-        parser.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
-                                                          "(default: the best of 5 spread points)")
+        start = parser.add_mutually_exclusive_group()
+        start.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
+                                                         "(default: the best of 5 spread points)")
+        start.add_argument("--start", type=float, nargs=5, metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
+                           help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
+                                "default: the best of 5 spread points)")
         parser.add_argument("--out", type=Path, required=True,
                             help="report directory (its fe_runs/ keeps finished FE runs: rerunning resumes)")
         parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
@@ -219,6 +223,12 @@ def check_inputs(args):
         raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
     bounds = (emulator.param_bounds if emulator is not None
               else np.array([config.sweep.bounds[n] for n in PARAM_NAMES]))
+    if args.start is not None:
+        outside = [f"{n} = {v:g} not in [{lo:g}, {hi:g}]" for n, v, (lo, hi) in zip(PARAM_NAMES, args.start, bounds)
+                   if not lo <= v <= hi]
+        if outside:
+            raise ValueError(f"--start is outside the prior box: {'; '.join(outside)}")
+        settings.start = np.array(args.start)
     half = config.mesh.membrane_size / 2
     n_params = 5 + len(effect_parameters(settings.add))
     measurements = [thin(read_measurement(p, config.mesh.length / 2), args.spacing) for p in args.measurement]

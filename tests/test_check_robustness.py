@@ -64,6 +64,7 @@ def _measurement(path, extent=20.0, step=2.0):
     ("nan", "NaN or infinite value"),
     ("few", "4 measured points are not more than the 5 parameters"),
     ("no_mesh", "give the mesh to check on with --config"),
+    ("start", "--start is outside the prior box: theta = 120 not in [0, 90]"),
 ])
 def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path):
     path = _measurement(tmp_path / "m.csv")
@@ -79,7 +80,8 @@ def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path
         text = text[:6] + [f"{x},{y},0,0,0,0.001,0.001,0.001" for x, y in ((10, 10), (10, -10), (-10, 10), (9, 10))]
     path.write_text("\n".join(text) + "\n")
     config = [] if problem == "no_mesh" else ["--config", "small"]
-    res = skinid("check", *config, "--measurement", path, "--out", tmp_path / "report")
+    start = ["--start", "1e-3", "0.017", "11", "0.285", "120"] if problem == "start" else []
+    res = skinid("check", *config, *start, "--measurement", path, "--out", tmp_path / "report")
     assert res.returncode == 2
     assert expected in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
     assert not (tmp_path / "report").exists()

@@ -48,6 +48,8 @@ class CheckSettings:
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
         refinement: the refined mesh of that estimate, ``"uniform"`` or ``"edge"`` (see
             :func:`inference.criticism.discretisation.refined_config`).
+        start: (5,) skin parameters to start the calibration from (None: the emulator's
+            posterior mode if an emulator is given, else the best of a few spread points).
     """
 
     candidates: list[str] = field(default_factory=lambda: list(EFFECTS))
@@ -60,6 +62,7 @@ class CheckSettings:
     spacing: float = 1.0
     discretisation: bool = True
     refinement: str = "uniform"
+    start: np.ndarray | None = None
 
     def __post_init__(self):
         for name in [*self.candidates, *self.add]:
@@ -97,6 +100,8 @@ class CheckTimings:
     add_reused_from_diagnose_s: float = 0.0  # fits made while diagnosing, reused as versions
     add_reused_from_diagnose_fe_runs: int = 0
     fe_runs_read_from_cache: int = 0
+    fe_runs_continued: int = 0  # started from a nearby point's states instead of a load ramp
+    refined_fe_runs_continued: int = 0  # started from the check mesh's interpolated fields
 
 
 @dataclass
@@ -165,11 +170,15 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     forward = FEForward(config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir,
                         settings.gauge)
     data = Data.from_points(measurements, noise)
-    if emulator is not None:
-        start = forward.null.copy()
+    start = forward.null.copy()
+    if settings.start is not None:
+        start[:5] = settings.start
+        start_from = "given start"
+    elif emulator is not None:
         start[:5] = on_root(comm, lambda: emulator_start(emulator, measurements))
+        start_from = "emulator's posterior mode"
     else:
-        start = spread_start(forward, data)
+        start, start_from = spread_start(forward, data), "best of 5 spread points"
     timings.setup_s = time.perf_counter() - t0
     half = config.mesh.membrane_size / 2
     band = settings.band or 2 * config.mesh.h_membrane
@@ -188,14 +197,14 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     t0, runs0 = time.perf_counter(), forward.runs
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
-    timings.fe_runs_read_from_cache = forward.reused
+    timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
     diagnosis.text = " ".join(part for part in (disc.summary() if disc else "", noise_statement.summary(noise.sd),
                                                  diagnosis.text) if part)
     return CheckResult(
         data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
         versions=versions, diagnosis=diagnosis, discretisation=disc, noise_statement=noise_statement,
         failures=forward.failures, start=start,
-        start_from="emulator's posterior mode" if emulator is not None else "best of 5 spread points",
+        start_from=start_from,
         gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
                     f"(one per {settings.spacing:g} mm square)"),
         fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size, timings=timings,
@@ -217,7 +226,7 @@ def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, st
     disc = estimate(forward, fine, baseline.x, data)
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
-    timings.refined_fe_runs, timings.refined_s = fine.runs, disc.seconds
+    timings.refined_fe_runs, timings.refined_s, timings.refined_fe_runs_continued = fine.runs, disc.seconds, fine.continued
     return model, data, baseline, disc
 
 

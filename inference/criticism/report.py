@@ -208,7 +208,8 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
               f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
               f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
               f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused); "
-              f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_read_from_cache} runs read from "
+              f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
+              f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
               f"the cache of an earlier run (`fe_runs/`).", ""]
     path = out / "report.md"
     report_json = json.dumps(report_dict(result), indent=2) + "\n"
