@@ -120,13 +120,13 @@ class FEForward(ForwardModel):
             path, so fewer increments give the same fields faster.
         comm: ranks to spread simulations (parameter points x designs) over; each rank runs
             its own serial model.
+        cache_dir: folder of finished simulations to reuse and extend (None: memory only).
+            Entries are keyed by the configuration, the designs, frames, points and gauge and
+            the parameter vector, so a changed setup never reads stale fields.
         continuation: start each simulation from the last converged states of its design at
             nearby parameters, moved along their sensitivities (:mod:`skinfem.continuation`),
             and ramp the load from zero only when that fails; the fields agree with a ramped
             simulation's to the Newton tolerance.
-        cache_dir: folder of finished simulations to reuse and extend (None: memory only).
-            Entries are keyed by the configuration, the designs, frames, points and gauge and
-            the parameter vector, so a changed setup never reads stale fields.
 
     Raises:
         ValueError: an observed load fraction is not on the increment grid, or a point's

@@ -293,12 +293,16 @@ class SkinModel:
         if reuse and policy != Factorisation.REUSE:
             self._set_lag(1 if policy == Factorisation.EVERY_STEP else -2)
         self.problem.solve()
-        self._rebuild_pending = reuse and policy == Factorisation.EVERY_STEP
-        if self._rebuild_pending:  # lag back from 1; PETSc accepts "never" only after a rebuild
-            self._set_lag(-2)
         reason = snes.getConvergedReason()
-        its = snes.getIterationNumber()
-        self.factorizations += its if not reuse or policy == Factorisation.EVERY_STEP else int(policy)
+        its = snes.getIterationNumber()  # 0: converged at the start, no Jacobian built
+        if reuse and policy == Factorisation.EVERY_STEP:  # lag back from 1; "never" needs a rebuild first
+            self._set_lag(-2)
+        self._rebuild_pending = reuse and (policy == Factorisation.EVERY_STEP or (policy != Factorisation.REUSE
+                                                                                 and its == 0))
+        if not reuse or policy == Factorisation.EVERY_STEP:
+            self.factorizations += its
+        elif policy == Factorisation.FIRST_STEP and its > 0:
+            self.factorizations += 1
         ok = reason > 0 and np.all(np.isfinite(self.u.x.array))
         ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
         return ok, its, snes.getLinearSolveIterations() / max(its, 1)
