@@ -32,7 +32,7 @@ import numpy as np
 from mpi4py import MPI
 
 from skinfem.config import PARAM_NAMES, Config
-from skinfem.continuation import ConvergedStates, Continuation
+from skinfem.continuation import ConvergedStates, Continuation, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
 from skinfem.parallel import collective, on_root
@@ -202,6 +202,8 @@ class FEForward(ForwardModel):
             states.reference = model.u_ref.x.array.copy()
             if names:
                 d_reference[:] = self.sensitivity(names)
+                for i, d_ref in zip(indices, d_reference):
+                    states.sensitivities[i] = (d_ref.x.array.copy(), {})
 
         def measure(t):
             k = int(np.argmin(np.abs(t_grid - t)))
@@ -215,9 +217,8 @@ class FEForward(ForwardModel):
                 for i, derivative in enumerate(gauge.derivatives(du, d_reference)):
                     out[o, :n, :, 1 + i] = derivative
             states.frames[float(t_grid[k])] = model.u.x.array.copy()
-            for i, d_frame, d_ref in zip(indices, du, d_reference):
-                reference = None if d_ref is None else d_ref.x.array.copy()
-                states.sensitivities.setdefault(i, (reference, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
+            for i, d_frame in zip(indices, du):
+                states.sensitivities.setdefault(i, (None, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
 
         start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
         continued = start is not None and model.solve_frames(params, design, start[1], start[0], measure,
@@ -235,8 +236,6 @@ class FEForward(ForwardModel):
         """Start this model's next simulations from ``other``'s last converged states (another
         mesh of the same setup, e.g. the refined mesh of a discretisation estimate), each rank
         from the designs it ran: Newton from the interpolated fields instead of a load ramp."""
-        from skinfem.continuation import transfer
-
         if self.continuation is None or other.continuation is None:
             return
 

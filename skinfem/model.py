@@ -273,14 +273,19 @@ class SkinModel:
                 "ksp_atol": 0.1 * solver.atol, "ksp_gmres_restart": 100, "ksp_max_it": 100,
                 "snes_lag_preconditioner_persists": True}
 
-    def _set_lag(self, lag: int) -> None:
-        """PETSc's preconditioner lag: 1 rebuild at every Jacobian, -2 at the next one only and
-        then never (through the options database, which SNES rereads)."""
-        key = f"{self._prefix}snes_lag_preconditioner"
+    def _set_snes_option(self, name: str, value) -> None:
+        """Set one option of this model's SNES: through the options database, which SNES rereads,
+        and out of it again, so that later rereads keep the value instead of repeating it."""
+        key = f"{self._prefix}{name}"
         options = PETSc.Options()
-        options[key] = lag
+        options[key] = value
         self.problem.solver.setFromOptions()
         del options[key]
+
+    def _set_lag(self, lag: int) -> None:
+        """PETSc's preconditioner lag: 1 rebuild at every Jacobian, -2 at the next one only and
+        then never."""
+        self._set_snes_option("snes_lag_preconditioner", lag)
 
     def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
         """One SNES solve from the current state, factorising the tangent as ``policy`` says
@@ -426,7 +431,7 @@ class SkinModel:
             False as soon as a Newton solve fails within ``max_iterations`` (the state is then
             undefined: ramp with :meth:`simulate`), True when every frame converged.
         """
-        self._set_max_iterations(max_iterations)
+        self._set_snes_option("snes_max_it", max_iterations)
         try:
             self.set_params(params)
             self.factorizations = 0
@@ -452,12 +457,7 @@ class SkinModel:
                     on_frame(float(t))
             return True
         finally:
-            self._set_max_iterations(self.config.solver.max_iterations)
-
-    def _set_max_iterations(self, n: int) -> None:
-        """Newton iterations per solve (through the options database, which SNES rereads)."""
-        PETSc.Options()[f"{self._prefix}snes_max_it"] = n
-        self.problem.solver.setFromOptions()
+            self._set_snes_option("snes_max_it", self.config.solver.max_iterations)
 
     @property
     def n_dofs(self) -> int:

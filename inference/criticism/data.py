@@ -9,6 +9,7 @@ attached to their points.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -83,11 +84,15 @@ class ModelError:
     length: float = 0.0
     nugget: float = 0.0
 
+    @cached_property
+    def _unit_field(self) -> NoiseModel:
+        """A unit-sd field with this correlation (its square roots cached per point set)."""
+        return NoiseModel(np.ones(3), self.length, self.nugget)
+
     def sample(self, xy: np.ndarray, o: int, mask: np.ndarray, shape: tuple[int, ...],
                rng: np.random.Generator) -> np.ndarray:
         """Draws (*shape, m, 3) of observation ``o``'s error at its measured points xy (m, 2)."""
-        w, v = np.linalg.eigh(correlation_matrix(xy, self.length, self.nugget))
-        return noise_fields(v * np.sqrt(np.maximum(w, 0)), np.ones(3), shape, rng) * self.sd[o, mask]
+        return self._unit_field.sample(xy, shape, rng) * self.sd[o, mask]
 
 
 def inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
