@@ -81,6 +81,26 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
         parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
         return parser
+    if prog.endswith("measurement"):
+        sub = parser.add_subparsers(dest="action", required=True)
+        p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
+        p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
+        _add_dic_import(p)
+        p.add_argument("--alpha", type=float, nargs=2, required=True, metavar=("A11", "A22"),
+                       help="the membrane design (alpha11, alpha22)")
+        p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
+        p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
+        p.add_argument("--out", type=Path, required=True, help="measurement CSV to write")
+        p.add_argument("--force", action="store_true", help="replace --out if it exists")
+        p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
+        p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
+        _add_dic_import(p)
+        p.add_argument("--alpha", type=float, nargs=2, metavar=("A11", "A22"),
+                       help="the membrane design: report the plausibility check on the figure")
+        p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction (default 1)")
+        p.add_argument("--out", type=Path, required=True, help="figure (.png)")
+        p.add_argument("--force", action="store_true", help="replace --out if it exists")
+        return parser
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
     p.add_argument("--emulator", type=Path, required=True)
@@ -111,6 +131,33 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True)
     _add_sampler(p)
     return parser
+
+
+def _add_dic_import(p: argparse.ArgumentParser) -> None:
+    """Options of ``skinid measurement import|show`` that say how to read a DIC export."""
+    from inference.dic_import import FORMATS
+
+    p.add_argument("--format", choices=["auto", *FORMATS], default="auto", help="export format (default: detect)")
+    p.add_argument("--mm-per-px", type=float, help="image scale [mm/px] (needed for pixel coordinates)")
+    p.add_argument("--centre", type=float, nargs=2, default=[0.0, 0.0], metavar=("X", "Y"),
+                   help="membrane centre in the file's coordinates (file units; default 0 0)")
+    p.add_argument("--rotation", type=float, default=0.0,
+                   help="angle [deg] from the file's x axis to the membrane's x (alpha11) axis, towards file y")
+    p.add_argument("--flip-y", action="store_true",
+                   help="the file's y axis points down (image coordinates): mirror it into the membrane frame")
+    p.add_argument("--strain", choices=["log", "green", "engineering"],
+                   help="strain measure, when the file does not state it (green = Lagrange)")
+    p.add_argument("--percent", action="store_true", help="strains are in percent")
+    p.add_argument("--config", default="small", help="preset or TOML giving the membrane and block sizes")
+    table = p.add_argument_group("--format table")
+    table.add_argument("--delimiter", help="field separator, e.g. ';', ',', tab (default: detect)")
+    table.add_argument("--decimal", choices=[".", ","], help="decimal mark (default: detect)")
+    table.add_argument("--encoding", help="text encoding (default: BOM, UTF-8, else Latin-1)")
+    table.add_argument("--columns", nargs=5, metavar=("X", "Y", "EXX", "EYY", "EXY"),
+                       help="names of the coordinate and strain (tensor shear) columns")
+    table.add_argument("--units", choices=["mm", "px"], help="coordinate unit when the header does not say")
+    table.add_argument("--missing", nargs="+", default=[], help="extra missing-value markers, e.g. 'n. def.'")
+    table.add_argument("--skip", type=int, default=0, help="lines before the header to skip")
 
 
 def settings_of(args):
@@ -265,7 +312,77 @@ def cmd_check(args) -> None:
         print(f"wrote {path}")
 
 
-COMMANDS = {"infer": cmd_infer, "study": cmd_study, "noise": cmd_noise, "check": cmd_check}
+def dic_settings(args):
+    """ImportSettings of ``skinid measurement`` from its options and the configuration's sizes."""
+    from inference.dic_import import ImportSettings, TableOptions
+    from skinfem.config import load_config
+
+    mesh = load_config(args.config).mesh
+    delimiter = {"tab": "\t", "\\t": "\t"}.get(args.delimiter, args.delimiter)
+    table = TableOptions(delimiter=delimiter, decimal=args.decimal, encoding=args.encoding,
+                         columns=tuple(args.columns) if args.columns else None, units=args.units,
+                         missing=tuple(args.missing), skip=args.skip)
+    return ImportSettings(format=args.format, mm_per_px=args.mm_per_px, centre=tuple(args.centre),
+                          rotation=args.rotation, flip_y=args.flip_y, strain=args.strain, percent=args.percent,
+                          membrane_half=mesh.membrane_size / 2, block_half=mesh.length / 2, table=table)
+
+
+def _dic_field(args, settings):
+    """Import ``args.file`` and say what was read and what could not be decided."""
+    from inference.dic_import import load_dic
+
+    field = load_dic(args.file, settings)
+    print(f"read {field.n_rows} rows of {args.file} ({field.format}): {field.n_missing} missing, "
+          f"{field.n_outside} outside the model block (|x|, |y| <= {settings.block_half:g} mm), "
+          f"{len(field.xy)} points kept")
+    if field.notes:
+        print("could not decide: " + "; ".join(field.notes))
+    return field
+
+
+def _measurement_show(args, settings) -> None:
+    from inference.dic_import import assess_plausibility, plot_field
+    from inference.observations import HEADER, read_measurement
+
+    if args.file.is_file() and args.file.read_bytes().startswith(HEADER.encode()):
+        m = read_measurement(args.file, settings.block_half)
+        xy, strain, alpha, t = m.xy, m.strain, m.alpha, m.t
+    else:
+        field = _dic_field(args, settings)
+        xy, strain, alpha, t = field.xy, field.strain, args.alpha, args.t
+    title = f"{args.file.name}: {len(xy)} points in the membrane frame"
+    if alpha is not None:
+        summary = assess_plausibility(xy, strain, alpha, t, settings.membrane_half).summary()
+        print(summary)
+        title += "\n" + summary
+    try:
+        print(f"wrote {plot_field(xy, strain, args.out, settings.membrane_half, title)}")
+    except OSError as exc:
+        raise ValueError(f"cannot write '{args.out}': {exc.strerror or exc}") from None
+
+
+def cmd_measurement(args) -> None:
+    from inference.dic_import import assess_plausibility, save_measurement
+    from inference.observations import MeasurementError
+
+    settings = dic_settings(args)
+    if args.out.exists() and not args.force:
+        raise ValueError(f"'{args.out}' exists; use --force to replace it")
+    if args.action == "show":
+        _measurement_show(args, settings)
+        return
+    field = _dic_field(args, settings)
+    m = field.measurement(args.alpha, args.t)
+    if not args.no_check:
+        check = assess_plausibility(m.xy, m.strain, m.alpha, m.t, settings.membrane_half)
+        if check.problem is not None:
+            raise MeasurementError(f"{args.file}: {check.problem} (or skip this check with --no-check)")
+        print(check.summary())
+    print(f"wrote {save_measurement(m, args.out, settings.block_half)}")
+
+
+COMMANDS = {"infer": cmd_infer, "study": cmd_study, "noise": cmd_noise, "check": cmd_check,
+            "measurement": cmd_measurement}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,6 +20,7 @@ ROUTES: dict[str, tuple[str, str]] = {
     "noise": ("inference.__main__", "add spatially correlated noise to a dataset"),
     "study": ("inference.__main__", "test-set | setups | noise: many posteriors, accuracy and coverage"),
     "check": ("inference.__main__", "model criticism: residuals, where the model fails, the missing effect"),
+    "measurement": ("inference.__main__", "import | show DIC exports (VIC, DaVis, DICe, tables) as measurements"),
 }
 
 
