@@ -22,7 +22,11 @@ really changes over the posterior draws, and summary.json reports it.
 
 :class:`SkinPosterior` is a plain torch log density on an unconstrained vector (logit of the
 unit box, log of sigma) with the Jacobian terms; :func:`pyro_model` states the same model in
-Pyro (the reference the tests compare the potential with).
+Pyro (the reference the tests compare the potential with), its priors in :func:`pyro_prior`.
+
+The emulator cannot extrapolate: :meth:`ObservedWeights.project` refuses observations whose
+emulator inputs alpha * t lie outside the box the emulator was trained on, and stated noise
+standard deviations that are not positive.
 """
 
 from __future__ import annotations
@@ -41,6 +45,52 @@ from surrogate.emulator import COMPONENTS, Emulator
 
 
 @dataclass
+class ObservedFields:
+    """The observations the PC weights were projected from (recorded in ``posterior.nc``).
+
+    Attributes:
+        alpha: (n_obs, 2) membrane designs (alpha11, alpha22).
+        t: (n_obs,) load fractions.
+        strain: (n_obs, n_cells, 3) observed log strain xx, yy, xy on the skin cells (NaN: masked).
+        xy: (n_cells, 2) skin-cell centroids [mm].
+        sd: (n_obs, 3) stated noise sd per component [strain], or None.
+        sources: where each observation came from.
+    """
+
+    alpha: np.ndarray
+    t: np.ndarray
+    strain: np.ndarray
+    xy: np.ndarray
+    sd: np.ndarray | None
+    sources: list[str]
+
+
+def check_observation(emulator: Emulator, o: Observation) -> None:
+    """Refuse an observation the emulator cannot predict or whose stated noise is degenerate.
+
+    Raises:
+        ValueError: naming the observation, the value and the range: alpha * t (the emulator's
+            design inputs) outside the box of its training rows, t outside (0, 1], or a stated
+            sd that is not positive (a zero sd makes the likelihood's noise covariance singular).
+    """
+    where = f"{o.source or 'observation'} (alpha11 = {o.alpha[0]:g}, alpha22 = {o.alpha[1]:g}, t = {o.t:g})"
+    if not 0 < o.t <= 1:
+        raise ValueError(f"{where}: the load fraction t must be in (0, 1]")
+    lower, upper = emulator.lower[5:], emulator.upper[5:]
+    slack = 1e-9 * (upper - lower)
+    for k, name in enumerate(("alpha11", "alpha22")):
+        value = o.alpha[k] * o.t
+        if not lower[k] - slack[k] <= value <= upper[k] + slack[k]:
+            raise ValueError(
+                f"{where}: {name}*t = {value:g} is outside the emulator's training range "
+                f"[{lower[k]:g}, {upper[k]:g}] of {name}*t; it cannot extrapolate: observe designs and "
+                f"frames inside it, or fit an emulator on a dataset that covers them")
+    if o.sd is not None and not np.all(np.isfinite(o.sd) & (np.asarray(o.sd) > 0)):
+        raise ValueError(f"{where}: the stated noise sd {np.asarray(o.sd).tolist()} (xx, yy, xy) must be positive "
+                         f"and finite: a zero sd makes the noise covariance singular")
+
+
+@dataclass
 class ObservedWeights:
     """Observations projected on the emulator's PC basis.
 
@@ -49,19 +99,24 @@ class ObservedWeights:
         weights: (n_obs, G) observed PC weights.
         noise_var: (n_obs, G) known noise variance in weight units, or None.
         truth: (5,) generating parameters when known.
+        fields: the observations projected (set by :meth:`project`), or None.
     """
 
     design_inputs: np.ndarray
     weights: np.ndarray
     noise_var: np.ndarray | None
     truth: np.ndarray | None
+    fields: ObservedFields | None = None
 
     @classmethod
     def project(cls, emulator: Emulator, observations: list[Observation]) -> "ObservedWeights":
+        """PC weights of the observations (each checked by :func:`check_observation`)."""
         if not observations:
             raise ValueError("no observation given")
         if any(len(o.fields) != len(emulator.xy) for o in observations):
             raise ValueError("observation fields do not have one value per emulator skin cell")
+        for o in observations:
+            check_observation(emulator, o)
         rows, noise = [], []
         for o in observations:
             w, v = [], []
@@ -76,11 +131,20 @@ class ObservedWeights:
             noise.append(np.concatenate(v) if v else None)
         known = None if any(n is None for n in noise) else np.stack(noise)
         truths = [o.truth for o in observations if o.truth is not None]
+        fields = ObservedFields(
+            alpha=np.stack([o.alpha for o in observations]),
+            t=np.array([o.t for o in observations]),
+            strain=np.stack([np.where(o.mask[:, None], o.fields, np.nan) for o in observations]),
+            xy=emulator.xy,
+            sd=None if any(o.sd is None for o in observations) else np.stack([o.sd for o in observations]),
+            sources=[o.source for o in observations],
+        )
         return cls(
             design_inputs=np.stack([o.alpha * o.t for o in observations]),
             weights=np.stack(rows),
             noise_var=known,
             truth=truths[0] if truths else None,
+            fields=fields,
         )
 
 
@@ -107,6 +171,8 @@ class SkinPosterior:
             raise ValueError("noise='known' needs measurements with sd_exx, sd_eyy, sd_exy columns")
         if gp_variance not in ("mode", "exact"):
             raise ValueError(f"gp_variance must be 'mode' or 'exact', got '{gp_variance}'")
+        if not noise_scale > 0:
+            raise ValueError(f"noise_scale (the HalfCauchy scale of sigma) must be > 0, got {noise_scale}")
         self.emulator = emulator
         self.observed = observed
         self.noise = noise
@@ -169,18 +235,32 @@ class SkinPosterior:
         resid = self.weights - mean
         return -0.5 * torch.sum(resid**2 / total + torch.log(2 * math.pi * total))
 
+    def pointwise_log_likelihood(self, values: torch.Tensor) -> torch.Tensor:
+        """Log density (n_obs, G) of each observed PC weight at constrained ``values`` (dim,).
+
+        The observed weights are independent normals given the parameters (not whitened: their
+        covariance is diagonal), so these terms sum to :meth:`log_likelihood`; they are the
+        elements of :func:`pyro_model`'s ``weights`` site.
+        """
+        mean, total = self.weight_moments(values[:5], values[5:])
+        return dist.Normal(mean, torch.sqrt(total), validate_args=False).log_prob(self.weights)
+
+    def log_prior_and_jacobian(self, u: torch.Tensor) -> torch.Tensor:
+        """Log prior density of ``constrain(u)`` plus the log Jacobian of ``constrain``: (...,) for u (..., dim)."""
+        log_z = torch.nn.functional.logsigmoid(u[..., :5]) + torch.nn.functional.logsigmoid(-u[..., :5])  # log z(1-z)
+        log_jac = torch.sum(torch.log(self.span) + log_z, -1) + torch.sum(u[..., 5:], -1)
+        log_prior = -torch.sum(torch.log(self.span))
+        if u.shape[-1] > 5:
+            sigma = torch.exp(u[..., 5:])
+            log_prior = log_prior + torch.sum(
+                dist.HalfCauchy(torch.tensor(self.noise_scale, dtype=u.dtype), validate_args=False).log_prob(sigma), -1
+            )
+        return log_prior + log_jac
+
     def log_density(self, u: torch.Tensor) -> torch.Tensor:
         """Log posterior density of the unconstrained vector u (dim,), Jacobian included."""
         values = self.constrain(u)
-        params, sigma = values[:5], values[5:]
-        log_z = torch.nn.functional.logsigmoid(u[:5]) + torch.nn.functional.logsigmoid(-u[:5])  # log z(1-z)
-        log_jac = torch.sum(torch.log(self.span) + log_z) + torch.sum(u[5:])
-        log_prior = -torch.sum(torch.log(self.span))
-        if len(sigma):
-            log_prior = log_prior + torch.sum(
-                dist.HalfCauchy(torch.tensor(self.noise_scale, dtype=u.dtype), validate_args=False).log_prob(sigma)
-            )
-        return self.log_likelihood(params, sigma) + log_prior + log_jac
+        return self.log_likelihood(values[:5], values[5:]) + self.log_prior_and_jacobian(u)
 
     def potential(self, sites: dict[str, torch.Tensor]) -> torch.Tensor:
         """Pyro's ``potential_fn``: minus the log density of ``sites["u"]``.
@@ -226,8 +306,8 @@ class SkinPosterior:
                 "ratio_95": float(np.percentile(ratios, 95))}
 
 
-def pyro_model(posterior: SkinPosterior) -> None:
-    """The same model in Pyro's language (reference for :class:`SkinPosterior`)."""
+def pyro_prior(posterior: SkinPosterior) -> tuple[torch.Tensor, torch.Tensor]:
+    """The priors in Pyro's language: params (5,) and sigma (n_sigma,) (empty with known noise)."""
     lo, span = posterior.lower, posterior.span
     params = torch.stack(
         [pyro.sample(name, dist.Uniform(lo[i], lo[i] + span[i])) for i, name in enumerate(PARAM_NAMES)]
@@ -236,5 +316,21 @@ def pyro_model(posterior: SkinPosterior) -> None:
         [pyro.sample(name, dist.HalfCauchy(torch.tensor(posterior.noise_scale, dtype=torch.float64)))
          for name in posterior.names[5:]]
     ) if posterior.noise == "halfcauchy" else torch.zeros(0, dtype=torch.float64)
+    return params, sigma
+
+
+def prior_draws(posterior: SkinPosterior, n: int, seed: int) -> np.ndarray:
+    """(n, dim) seeded draws of :func:`pyro_prior` (Pyro's ``Predictive``), theta in degrees."""
+    from pyro.infer import Predictive
+
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        draws = Predictive(pyro_prior, num_samples=n, return_sites=list(posterior.names))(posterior)
+    return np.column_stack([draws[name].reshape(n).numpy() for name in posterior.names])
+
+
+def pyro_model(posterior: SkinPosterior) -> None:
+    """The same model in Pyro's language (reference for :class:`SkinPosterior`)."""
+    params, sigma = pyro_prior(posterior)
     mean, total = posterior.weight_moments(params, sigma)
     pyro.sample("weights", dist.Normal(mean, torch.sqrt(total)).to_event(2), obs=posterior.weights)

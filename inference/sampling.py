@@ -8,9 +8,16 @@ matrix, adapts its step size and a dense mass matrix during warm-up, and returns
 the constrained parameters (theta in degrees). Starting from the Laplace metric instead of
 the identity, with a longer first adaptation window, halves the leapfrog steps of warm-up.
 
-Outputs (:func:`write_outputs`): ArviZ ``posterior.nc`` (posterior + sample_stats),
-``summary.json`` (median, 95 % interval, R-hat, bulk/tail ESS, divergences, the true value
-when known) and ``corner.png``.
+Outputs (:func:`write_outputs`): ArviZ ``posterior.nc`` (groups posterior, sample_stats,
+log_likelihood, observed_data, prior, constant_data: :meth:`PosteriorSamples.inference_data`),
+``summary.json`` (median, 95 % interval, R-hat, bulk/tail ESS, divergences, acceptance rates, the
+true value when known) and ``corner.png``.
+
+Sampler statistics come from Pyro's public interface only: divergences and the acceptance rate
+from ``MCMC.diagnostics()``, the step size from ``NUTS.step_size`` in the ``hook_fn`` Pyro calls
+after every iteration, the leapfrog steps by counting calls of our own potential (NUTS evaluates
+it once per leapfrog step), whether the chain moved by comparing successive draws in that hook.
+The Hamiltonian energy is not recorded: Pyro's NUTS does not expose the momentum.
 """
 
 from __future__ import annotations
@@ -21,14 +28,18 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from inference.model import SkinPosterior
+from inference.model import ObservedFields, SkinPosterior, prior_draws
+from skinfem.config import PARAM_NAMES
+from surrogate.emulator import COMPONENTS
 
 RHAT_LIMIT, ESS_LIMIT = 1.01, 400
+N_PRIOR_DRAWS = 1000
 
 
 def find_mode(posterior: SkinPosterior, n_starts: int = 8, seed: int = 0) -> np.ndarray:
@@ -86,10 +97,12 @@ def laplace_inverse_mass(posterior: SkinPosterior, mode: np.ndarray, floor: floa
 
 
 FIRST_WINDOW = 100  # warm-up steps of the first mass-matrix window (Stan's default: 25)
+MAX_TREE_DEPTH, TARGET_ACCEPT = 8, 0.8
 
 
-def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray):
-    """Pyro's NUTS on ``posterior.potential`` whose warm-up starts from ``inverse_mass``.
+def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray, potential_fn=None):
+    """Pyro's NUTS on ``potential_fn`` (default ``posterior.potential``) whose warm-up starts
+    from ``inverse_mass``.
 
     Starting from a good metric, the first mass-matrix window is made ``FIRST_WINDOW`` steps
     long: the default 25-step window replaces the Laplace metric by a noisy 25-draw estimate
@@ -107,8 +120,62 @@ def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray):
             self.mass_matrix_adapter.inverse_mass_matrix = {("u",): torch.as_tensor(inverse_mass)}
             self._adapter.reset_step_size_adaptation(self._initial_params)  # for the new metric
 
-    return StartedNUTS(potential_fn=posterior.potential, adapt_step_size=True, adapt_mass_matrix=True,
-                       full_mass=True, target_accept_prob=0.8, max_tree_depth=8)
+    potential_fn = posterior.potential if potential_fn is None else potential_fn
+    return StartedNUTS(potential_fn=potential_fn, adapt_step_size=True, adapt_mass_matrix=True,
+                       full_mass=True, target_accept_prob=TARGET_ACCEPT, max_tree_depth=MAX_TREE_DEPTH)
+
+
+class _ChainRecorder:
+    """Per-iteration NUTS statistics through public routes: :meth:`potential` is the potential
+    NUTS gets (it counts the calls: one per leapfrog step), :meth:`hook` is MCMC's ``hook_fn``
+    (called after every warm-up and sampling iteration with the kernel and the new draw)."""
+
+    def __init__(self, potential_fn, init: torch.Tensor, queue=None, chain: int = 0):
+        self.potential_fn, self.previous, self.queue, self.chain = potential_fn, init, queue, chain
+        self.calls = self.calls_seen = 0
+        self.n_steps, self.step_size, self.moved = [], [], []
+
+    def potential(self, sites: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.calls += 1
+        return self.potential_fn(sites)
+
+    def hook(self, kernel, samples, stage, i) -> None:
+        self.n_steps.append(self.calls - self.calls_seen)
+        self.calls_seen = self.calls
+        self.step_size.append(float(kernel.step_size))
+        u = samples["u"].detach()
+        self.moved.append(not torch.equal(u, self.previous))
+        self.previous = u.clone()
+        if self.queue is not None and (i + 1) % 50 == 0:
+            self.queue.put((self.chain, 50))
+
+    def statistics(self, draws: int) -> dict[str, np.ndarray]:
+        """(draws,) per statistic of the last ``draws`` iterations (the sampling phase).
+
+        ``tree_depth`` = ceil(log2(n_steps + 1)): the trajectory doublings NUTS started (a
+        depth-d tree has 2^d - 1 leapfrog steps; a doubling cut short by a U-turn or a
+        divergence inside it counts).
+        """
+        n_steps = np.array(self.n_steps[-draws:], dtype=np.int64)
+        return {
+            "step_size": np.array(self.step_size[-draws:]),
+            "n_steps": n_steps,
+            "tree_depth": np.ceil(np.log2(n_steps + 1)).astype(np.int64),
+            "accepted": np.array(self.moved[-draws:], dtype=bool),
+        }
+
+
+def draw_statistics(posterior: SkinPosterior, u: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Per-datum log-likelihood (n, n_obs, G) and log density ``lp`` (n,) (= -potential,
+    Jacobian included) at unconstrained draws u (n, dim).
+
+    One draw at a time: the emulator then sees the inputs the sampler gave it, with the same
+    round-off (a batched GP mean sums in another order; ill-conditioned GPs make that visible).
+    """
+    with torch.no_grad():
+        terms = torch.stack([posterior.pointwise_log_likelihood(posterior.constrain(v)) for v in u])
+        lp = terms.sum((-2, -1)) + posterior.log_prior_and_jacobian(u)
+    return terms.numpy(), lp.numpy()
 
 
 @dataclass
@@ -117,6 +184,9 @@ class ChainResult:
     diverging: np.ndarray  # (n_draws,) bool
     step_size: float
     seconds: float
+    acceptance_rate: float  # Pyro's: share of iterations that moved
+    stats: dict[str, np.ndarray]  # (n_draws,) per sampler statistic
+    log_likelihood: np.ndarray  # (n_draws, n_obs, G)
 
 
 def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndarray, warmup: int, draws: int,
@@ -126,33 +196,133 @@ def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndar
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     start = time.perf_counter()
-    kernel = _nuts_kernel(posterior, inverse_mass)
-
-    def hook(kernel, samples, stage, i):
-        if queue is not None and (i + 1) % 50 == 0:
-            queue.put((chain, 50))
-
+    init = torch.as_tensor(init)
+    recorder = _ChainRecorder(posterior.potential, init, queue, chain)
+    kernel = _nuts_kernel(posterior, inverse_mass, recorder.potential)
     mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup,
-                initial_params={"u": torch.as_tensor(init)}, disable_progbar=True, hook_fn=hook)
+                initial_params={"u": init}, disable_progbar=True, hook_fn=recorder.hook)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         mcmc.run()
     u = mcmc.get_samples()["u"]
     with torch.no_grad():
         values = posterior.constrain(u).numpy()
+    diagnostics = mcmc.diagnostics()
     diverging = np.zeros(draws, dtype=bool)
-    idx = mcmc.diagnostics().get("divergences", {}).get("chain 0", [])
-    diverging[np.asarray(idx, dtype=int)] = True
-    return ChainResult(values, diverging, float(kernel.step_size), time.perf_counter() - start)
+    diverging[np.asarray(diagnostics["divergences"]["chain 0"], dtype=int)] = True
+    stats = recorder.statistics(draws)
+    log_likelihood, stats["lp"] = draw_statistics(posterior, u)
+    return ChainResult(values, diverging, float(kernel.step_size), time.perf_counter() - start,
+                       float(diagnostics["acceptance rate"]["chain 0"]), stats, log_likelihood)
 
 
 def _worker(args):
     return _run_chain(*args)
 
 
+# dimensions of the variables of posterior.nc beyond (chain, draw); datum = (observation, PC weight)
+DIMS = {
+    "weights": ["datum"], "datum_observation": ["datum"], "datum_component": ["datum"], "datum_pc": ["datum"],
+    "noise_sd": ["datum"], "gp_variance": ["datum"],
+    "alpha11": ["observation"], "alpha22": ["observation"], "t": ["observation"], "alpha11_t": ["observation"],
+    "alpha22_t": ["observation"], "source": ["observation"], "stated_sd": ["observation", "component"],
+    "cell_x": ["cell"], "cell_y": ["cell"], "strain_field": ["observation", "cell", "component"],
+    "prior_lower": ["parameter"], "prior_upper": ["parameter"], "truth": ["parameter"],
+}
+COORDS = {"component": list(COMPONENTS), "parameter": list(PARAM_NAMES)}
+GROUP_ATTRS = {
+    "sample_stats": {
+        "diverging": "the transition diverged (Pyro's MCMC.diagnostics)",
+        "step_size": "leapfrog step size (NUTS.step_size)",
+        "n_steps": "leapfrog steps of the transition (calls of the potential)",
+        "tree_depth": "trajectory doublings started, ceil(log2(n_steps + 1))",
+        "accepted": "the chain moved to a new point; its mean per chain is Pyro's acceptance rate",
+        "lp": "log posterior density of the sampled unconstrained vector, Jacobian included (= -potential)",
+        "energy": "not recorded: Pyro's NUTS does not expose the momentum of a draw",
+    },
+    "log_likelihood": {
+        "weights": "log density of each observed PC weight (datum: see constant_data datum_*); the data are "
+                   "independent normals given the parameters, so the terms sum to the likelihood NUTS samples",
+    },
+    "observed_data": {
+        "weights": "PC weights of the observed log strains (masked least-squares projection on the emulator's "
+                   "PCA basis); raw, not whitened: independent given the parameters, variance GP + noise",
+    },
+    "constant_data": {
+        "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
+                 "projection (noise_sd, PC-weight units); 'halfcauchy' has one sigma per strain component",
+        "strain_field": "observed log strain on the emulator's skin cells (cell_x, cell_y [mm]); NaN: masked",
+    },
+}
+
+
+def data_groups(posterior: SkinPosterior) -> dict[str, dict[str, np.ndarray]]:
+    """observed_data and constant_data of ``posterior.nc``: arrays by variable (dims in DIMS).
+
+    Datum d = o * G + g is PC weight g (of G) of observation o.
+    """
+    observed = posterior.observed
+    n_obs = len(observed.weights)
+    n_weights = posterior.emulator.n_weights
+    constant = {
+        "alpha11_t": observed.design_inputs[:, 0],
+        "alpha22_t": observed.design_inputs[:, 1],
+        "datum_observation": np.repeat(np.arange(n_obs), sum(n_weights.values())),
+        "datum_component": np.tile(np.concatenate([[c] * m for c, m in n_weights.items()]), n_obs),
+        "datum_pc": np.tile(np.concatenate([np.arange(m) for m in n_weights.values()]), n_obs),
+        "prior_lower": posterior.emulator.param_bounds[:, 0],
+        "prior_upper": posterior.emulator.param_bounds[:, 1],
+    }
+    if posterior.noise == "known":
+        constant["noise_sd"] = np.sqrt(observed.noise_var).ravel()
+    if posterior.variance_is_fixed:
+        constant["gp_variance"] = posterior.fixed_gp_var.numpy().ravel()
+    if observed.truth is not None:
+        constant["truth"] = observed.truth
+    if observed.fields is not None:
+        constant.update(_field_constants(observed.fields))
+    return {"observed_data": {"weights": observed.weights.ravel()}, "constant_data": constant}
+
+
+def _field_constants(fields: ObservedFields) -> dict[str, np.ndarray]:
+    """Designs, load fractions, sources, cells, observed strain fields and stated sd."""
+    out = {
+        "alpha11": fields.alpha[:, 0],
+        "alpha22": fields.alpha[:, 1],
+        "t": fields.t,
+        "source": np.array(fields.sources, dtype=str),
+        "cell_x": fields.xy[:, 0],
+        "cell_y": fields.xy[:, 1],
+        "strain_field": fields.strain,
+    }
+    if fields.sd is not None:
+        out["stated_sd"] = fields.sd
+    return out
+
+
+def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, seed: int) -> dict[str, dict]:
+    """Attributes of ``posterior.nc``: the run's settings and versions (root) and each group's notes."""
+    root = {
+        "skinid_version": metadata.version("skinid"),
+        "pyro_version": metadata.version("pyro-ppl"),
+        "sampler": "NUTS, dense mass matrix",
+        "seed": seed,
+        "chains": chains,
+        "warmup": warmup,
+        "draws": draws,
+        "max_tree_depth": MAX_TREE_DEPTH,
+        "target_accept_prob": TARGET_ACCEPT,
+        "noise": posterior.noise,
+        "noise_scale": posterior.noise_scale,
+        "gp_variance": posterior.gp_variance,
+    }
+    prior = {"draws": f"{N_PRIOR_DRAWS} draws of inference.model.pyro_prior, seed {seed}"}
+    return {"/": root, "prior": prior, **GROUP_ATTRS}
+
+
 @dataclass
 class PosteriorSamples:
-    """Draws of all chains and their diagnostics."""
+    """Draws of all chains, their diagnostics and what ``posterior.nc`` records of the model."""
 
     names: tuple[str, ...]
     draws: np.ndarray  # (chains, n_draws, dim)
@@ -161,18 +331,35 @@ class PosteriorSamples:
     seconds: float
     truth: np.ndarray | None
     bounds: np.ndarray  # (5, 2)
+    acceptance_rates: list[float]  # Pyro's, per chain
+    stats: dict[str, np.ndarray]  # (chains, n_draws) per sampler statistic (see GROUP_ATTRS)
+    log_likelihood: np.ndarray  # (chains, n_draws, n_obs, G)
+    prior: np.ndarray  # (n_prior, dim) prior draws
+    data: dict[str, dict[str, np.ndarray]]  # observed_data, constant_data (see data_groups)
+    attrs: dict[str, dict]  # per group, "/" for the root (see file_attrs)
     gp_variance_spread: dict | None = None
 
+    def posterior_dict(self) -> dict[str, np.ndarray]:
+        """(chains, n_draws) draws per parameter name."""
+        return {n: self.draws[..., k] for k, n in enumerate(self.names)}
+
     def inference_data(self):
+        """The ArviZ DataTree of ``posterior.nc`` (groups: see docs/file-formats.md)."""
         import arviz as az
 
-        posterior = {n: self.draws[..., k] for k, n in enumerate(self.names)}
-        return az.from_dict({"posterior": posterior, "sample_stats": {"diverging": self.diverging}})
+        groups = {
+            "posterior": self.posterior_dict(),
+            "sample_stats": {"diverging": self.diverging, **self.stats},
+            "log_likelihood": {"weights": self.log_likelihood.reshape(*self.diverging.shape, -1)},
+            "prior": {n: self.prior[None, :, k] for k, n in enumerate(self.names)},
+            **self.data,
+        }
+        return az.from_dict(groups, dims=DIMS, coords=COORDS, attrs=self.attrs)
 
     def summary(self) -> dict:
         import arviz as az
 
-        dt = self.inference_data()
+        dt = az.from_dict({"posterior": self.posterior_dict()})
         rhat = az.rhat(dt)
         bulk, tail = az.ess(dt, method="bulk"), az.ess(dt, method="tail")
         out = {}
@@ -199,6 +386,7 @@ class PosteriorSamples:
             "draws_per_chain": int(self.draws.shape[1]),
             "divergences": int(self.diverging.sum()),
             "step_sizes": self.step_sizes,
+            "acceptance_rates": self.acceptance_rates,
             "seconds": self.seconds,
             "gp_variance_over_posterior": self.gp_variance_spread,
             "warnings": self.warnings(out),
@@ -270,6 +458,12 @@ def sample_posterior(
         seconds=time.perf_counter() - start,
         truth=posterior.observed.truth,
         bounds=posterior.emulator.param_bounds,
+        acceptance_rates=[r.acceptance_rate for r in results],
+        stats={name: np.stack([r.stats[name] for r in results]) for name in results[0].stats},
+        log_likelihood=np.stack([r.log_likelihood for r in results]),
+        prior=prior_draws(posterior, N_PRIOR_DRAWS, seed),
+        data=data_groups(posterior),
+        attrs=file_attrs(posterior, chains, warmup, draws, seed),
     )
     if posterior.gp_variance == "mode":
         samples.gp_variance_spread = posterior.gp_variance_spread(samples.draws[..., :5].reshape(-1, 5))
