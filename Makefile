@@ -1,15 +1,18 @@
-# skinid — the two commands a user needs: `make test` and `make demo`.
+# skinid — the two commands a user needs: `make test` and `make demo` (`make lint`: ruff, run by CI).
 # Each bootstraps .venv on a fresh machine (scripts/setup.sh).
 VENV ?= .venv
 PY := $(VENV)/bin/python
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: setup test test-fast demo benchmarks clean
+.PHONY: setup lint test test-fast demo benchmarks clean
 
 $(VENV)/.installed: pyproject.toml scripts/setup.sh
 	VENV=$(VENV) bash scripts/setup.sh
 
 setup: $(VENV)/.installed
+
+lint: setup
+	$(VENV)/bin/ruff check skinfem surrogate inference tests benchmarks scripts notebooks
 
 test: setup
 	$(PY) -m pytest -q tests

@@ -59,7 +59,8 @@ DATA_MESHES = {  # changes to the small preset
 def data_config(name: str):
     from skinfem.config import load_config
 
-    return load_config("small").with_changes(mesh=DATA_MESHES[name], solver={"element_degree": 2, "quadrature_degree": 4})
+    return load_config("small").with_changes(mesh=DATA_MESHES[name],
+                                             solver={"element_degree": 2, "quadrature_degree": 4})
 
 
 def data_fields(config, case: str, points, mesh_dir, comm) -> list:
@@ -94,7 +95,6 @@ def verdict_class(report: dict) -> str:
 def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     """One check; returns its row (rank 0) and writes it, with the report, to out/case_seed."""
     from inference.__main__ import main as skinid
-
     from inference.criticism import NoiseModel
     from inference.synthetic import write_noisy
 

@@ -41,7 +41,8 @@ EDGE_SERIES = [  # (degree, h_membrane, h_far, skin_layers, muscle_layers, h_edg
     [(2, 2, 6, 2, 2, 0.0), (2, 2, 6, 2, 2, 1.0), (2, 2, 6, 2, 2, 0.5)],
     [(1, 2, 6, 2, 2, 0.0), (1, 2, 6, 2, 2, 0.5), (1, 2, 6, 2, 2, 0.25), (1, 2, 6, 4, 4, 0.25)],
 ]
-REFINEMENTS = {"base": (2, 2, 6, 2, 2), "layers doubled": (2, 2, 6, 4, 4), "in-plane halved": (2, 1, 3, 2, 2)}
+REFINEMENTS = {"base": (2, 2, 6, 2, 2), "layers doubled": (2, 2, 6, 4, 4), "skin layers doubled": (2, 2, 6, 4, 2),
+               "muscle layers doubled": (2, 2, 6, 2, 4), "in-plane halved": (2, 1, 3, 2, 2)}
 
 
 def label(mesh) -> str:
@@ -126,7 +127,8 @@ def refinements(xy, mesh_dir) -> dict:
     rows = []
     for name in list(REFINEMENTS)[1:]:
         diff = fields[name] - base
-        row = {"refinement": name, "mesh": label(REFINEMENTS[name]), "dofs": dofs[name], "seconds": round(seconds[name], 1),
+        row = {"refinement": name, "mesh": label(REFINEMENTS[name]), "dofs": dofs[name],
+               "seconds": round(seconds[name], 1),
                "relative_rms_change": float(np.sqrt(np.mean(diff**2) / np.mean(base**2)))}
         for band, (lo, hi) in BANDS.items():
             sel = (ring >= lo) & (ring < hi)

@@ -104,7 +104,8 @@ def main() -> None:
     if "paper_configuration" in results:
         paper_rate = results["paper_configuration"]["ess_per_second"]
         for v in args.variants:
-            results[f"ess_per_second_ratio_{v}_over_paper"] = results[f"skinid_gp_variance_{v}"]["ess_per_second"] / paper_rate
+            rate = results[f"skinid_gp_variance_{v}"]["ess_per_second"]
+            results[f"ess_per_second_ratio_{v}_over_paper"] = rate / paper_rate
     all_results[name] = results
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(all_results, indent=2) + "\n")

@@ -175,7 +175,8 @@ def print_summary(summary: dict, out: Path) -> None:
               f"{e['r_hat']:>6.3f} {min(e['ess_bulk'], e['ess_tail']):>6.0f} {true:>10}")
     for w in summary["warnings"]:
         print(f"warning: {w}")
-    print(f"{summary['divergences']} divergences, {summary['seconds']:.1f} s\nwrote {out}/posterior.nc, summary.json, corner.png")
+    print(f"{summary['divergences']} divergences, {summary['seconds']:.1f} s")
+    print(f"wrote {out}/posterior.nc, summary.json, corner.png")
 
 
 def cmd_infer(args) -> None:
@@ -250,8 +251,8 @@ def cmd_noise(args) -> None:
 
 def check_inputs(args):
     """Settings, configuration, prior box, emulator, measurements and noise of ``skinid check``."""
-    from inference.criticism.check import CheckSettings
     from inference.criticism import NoiseModel
+    from inference.criticism.check import CheckSettings
     from inference.observations import check_field_of_view, read_measurement, thin
     from skinfem.config import PARAM_NAMES, config_from_toml, load_config
     from skinfem.dic import StrainGauge

@@ -32,12 +32,11 @@ import numpy as np
 from mpi4py import MPI
 
 from skinfem.config import PARAM_NAMES, Config
-from skinfem.continuation import ConvergedStates, Continuation, transfer
+from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
 from skinfem.parallel import collective, on_root
 from skinfem.sensitivity import DisplacementSensitivity
-
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 
@@ -232,7 +231,7 @@ class FEForward(ForwardModel):
             self.continuation.record(j, states)
         return out, continued
 
-    def continue_from(self, other: "FEForward") -> None:
+    def continue_from(self, other: FEForward) -> None:
         """Start this model's next simulations from ``other``'s last converged states (another
         mesh of the same setup, e.g. the refined mesh of a discretisation estimate), each rank
         from the designs it ran: Newton from the interpolated fields instead of a load ramp."""

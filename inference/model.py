@@ -109,7 +109,7 @@ class ObservedWeights:
     fields: ObservedFields | None = None
 
     @classmethod
-    def project(cls, emulator: Emulator, observations: list[Observation]) -> "ObservedWeights":
+    def project(cls, emulator: Emulator, observations: list[Observation]) -> ObservedWeights:
         """PC weights of the observations (each checked by :func:`check_observation`)."""
         if not observations:
             raise ValueError("no observation given")

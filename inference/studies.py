@@ -168,7 +168,7 @@ def noise_study(
 
     out = Path(out)
     fit_options = fit_options or {}
-    cases = {"clean": None} | {case_name(l, v): (l, v) for l in lengths for v in levels}
+    cases = {"clean": None} | {case_name(length, v): (length, v) for length in lengths for v in levels}
     results = {}
     for k, (name, noise) in enumerate(cases.items()):
         folder = out / "cases" / name

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import from_dataset
 from inference.plots import corner_plot
 from inference.sampling import sample_posterior
 from inference.studies import spread_designs
-from inference.model import ObservedWeights, SkinPosterior
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
 

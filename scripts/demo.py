@@ -101,9 +101,9 @@ def main() -> None:
         from skinfem.params import SkinParams
 
         hidden = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
-        files = synthetic_measurements(load_config("small"), SkinParams.from_array(truth), [(0.05, 0.05), (0.05, -0.05)],
-                                       NoiseModel(np.full(3, 2e-4), 2.0, 0.3), out / "measurements", hidden, seed=1,
-                                       increments=2)
+        files = synthetic_measurements(load_config("small"), SkinParams.from_array(truth),
+                                       [(0.05, 0.05), (0.05, -0.05)], NoiseModel(np.full(3, 2e-4), 2.0, 0.3),
+                                       out / "measurements", hidden, seed=1, increments=2)
         cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
                "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2",
                "--spacing", "2", "--no-discretisation"]  # data from the checked mesh: its model is exact

@@ -1,7 +1,7 @@
 """Command line of skinfem: ``skinid mesh|simulate|sweep|merge|info`` (also ``python -m skinfem``).
 
-``mesh``, ``simulate`` and ``sweep`` run under ``mpirun -n k``. Errors in the input are reported as one line on stderr with
-a non-zero exit status; nothing is half-written.
+``mesh``, ``simulate`` and ``sweep`` run under ``mpirun -n k``. Errors in the input are reported as one
+line on stderr with a non-zero exit status; nothing is half-written.
 """
 
 from __future__ import annotations

@@ -278,7 +278,7 @@ class Config:
     solver: SolverConfig = field(default_factory=SolverConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
 
-    def validate(self) -> "Config":
+    def validate(self) -> Config:
         for section in SECTIONS:
             getattr(self, section).validate(section)
         return self
@@ -293,7 +293,7 @@ class Config:
             lines.append("")
         return "\n".join(lines)
 
-    def with_changes(self, **sections: dict[str, Any]) -> "Config":
+    def with_changes(self, **sections: dict[str, Any]) -> Config:
         """A copy with some keys of some sections replaced, validated.
 
         Example: ``cfg.with_changes(mesh={"h_far": 4.0})``.

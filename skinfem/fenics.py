@@ -42,6 +42,8 @@ for _name in ("vec_mdot_use_gemv", "vec_maxpy_use_gemv"):
     if not _options.hasName(_name):
         _options[_name] = False
 
-JIT_OPTIONS = {"cffi_extra_compile_args": ["-O2", "-g0", "-fassociative-math", "-fno-signed-zeros", "-fno-trapping-math"]}
+JIT_OPTIONS = {
+    "cffi_extra_compile_args": ["-O2", "-g0", "-fassociative-math", "-fno-signed-zeros", "-fno-trapping-math"]
+}
 
 __all__ = ["dolfinx", "ufl", "PETSc", "JIT_OPTIONS"]

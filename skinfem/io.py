@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
 
@@ -88,7 +88,7 @@ def create_dataset(
         f.attrs["config"] = config.to_toml()
         f.attrs["versions"] = json.dumps(package_versions())
         f.attrs["mesh_sha256"] = mesh_sha256
-        f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        f.attrs["created"] = datetime.now(UTC).isoformat(timespec="seconds")
         f.attrs["seed"] = config.sweep.seed
         d = f.create_dataset("params", data=params)
         d.attrs["names"] = list(PARAM_NAMES)
@@ -113,7 +113,7 @@ def create_dataset(
         f.create_dataset("split", data=np.asarray(split, dtype=np.int8))
 
 
-def create_dataset_like(path: Path | str, data: "StrainDataset") -> None:
+def create_dataset_like(path: Path | str, data: StrainDataset) -> None:
     """Create an empty dataset with the metadata (config, design, cells, split, mesh) of ``data``."""
     create_dataset(
         path,
@@ -196,7 +196,7 @@ class StrainDataset:
     created: str
 
     @classmethod
-    def open(cls, path: Path | str) -> "StrainDataset":
+    def open(cls, path: Path | str) -> StrainDataset:
         """Read the metadata of a dataset file.
 
         Raises:

@@ -79,7 +79,7 @@ class LaminaStiffness:
     E3: float
 
     @classmethod
-    def from_config(cls, m: MembraneConfig) -> "LaminaStiffness":
+    def from_config(cls, m: MembraneConfig) -> LaminaStiffness:
         nu21 = m.nu12 * m.E2 / m.E1
         d = 1 - m.nu12 * nu21
         return cls(m.E1 / d, m.E2 / d, m.nu12 * m.E2 / d, m.G12, m.G13, m.G23, m.E3)

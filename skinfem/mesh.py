@@ -292,8 +292,7 @@ def read_mesh(path: Path | str, comm):
     """
     import gmsh
 
-    from skinfem.fenics import dolfinx  # noqa: F401
-    from dolfinx.io import gmsh as gmshio
+    from skinfem.fenics import dolfinx  # imports dolfinx.io.gmsh after the wheel's PETSc/MPICH
 
     path = Path(path)
     exists = comm.bcast(path.is_file() if comm.rank == 0 else None, root=0)
@@ -302,12 +301,12 @@ def read_mesh(path: Path | str, comm):
             f"mesh file '{path}' does not exist; create it with `skinid mesh --config <config>`"
         )
     if comm.rank != 0:
-        return gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
+        return dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     gmsh.initialize(interruptible=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("skinid-read")
         gmsh.merge(str(path))
-        return gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
+        return dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     finally:
         gmsh.finalize()

@@ -35,10 +35,10 @@ import numpy as np
 from mpi4py import MPI
 
 from skinfem.config import Config, SolverConfig
+from skinfem.effects import ModelTerms, get_effect
 from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
-from skinfem.effects import ModelTerms, get_effect
 from skinfem.params import Design, SkinParams
 from skinfem.strain import SkinStrainSampler, top_skin_cells
 
@@ -312,15 +312,16 @@ class SkinModel:
         ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
         return ok, its, snes.getLinearSolveIterations() / max(its, 1)
 
-    def _newton_escalating(self, policy: Factorisation) -> tuple[bool, int, float]:
+    def _newton_escalating(self, policy: Factorisation,
+                           most: Factorisation = Factorisation.EVERY_STEP) -> tuple[bool, int, float]:
         """:meth:`_newton` from the current state; after a failure once more from the same start
-        with each more frequent factorisation up to Newton–LU: a stale factorisation, or one
-        made stale by a large first Newton step, can stall GMRES (DIVERGED_LINEAR_SOLVE)
-        where Newton itself converges. Returns the last attempt's result."""
+        with each more frequent factorisation up to ``most`` (default Newton–LU): a stale
+        factorisation, or one made stale by a large first Newton step, can stall GMRES
+        (DIVERGED_LINEAR_SOLVE) where Newton itself converges. Returns the last attempt's result."""
         start = self.u.x.array.copy()
         while True:
             converged, its, krylov = self._newton(policy)
-            if converged or policy == Factorisation.EVERY_STEP or self.config.solver.refactor_krylov == 0:
+            if converged or policy >= most or self.config.solver.refactor_krylov == 0:
                 return converged, its, krylov
             self.u.x.array[:] = start
             policy = Factorisation(policy + 1)
@@ -422,6 +423,10 @@ class SkinModel:
         of ramping the load from zero. ``reference_guess`` starts the unloaded equilibrium of a
         pre-stressed model (zero if None).
 
+        A failed Newton solve is retried once with a fresh factorisation, not escalated to
+        Newton–LU (a factorisation per step, up to ``max_iterations`` of them): that escalation
+        is left to the load ramp the caller falls back to.
+
         Equilibrium does not depend on the load path, so where it is unique the states equal
         :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
         preconditions the first Newton step (refreshed as in :meth:`simulate`). Callbacks as in
@@ -440,7 +445,7 @@ class SkinModel:
             if self.prestressed:
                 x[:] = 0.0 if reference_guess is None else reference_guess
                 self._set_load(0.0, design)
-                if not self._newton_escalating(Factorisation.REUSE)[0]:
+                if not self._newton_escalating(Factorisation.REUSE, Factorisation.FIRST_STEP)[0]:
                     return False
                 self.u_ref.x.array[:] = x
                 if on_reference is not None:
@@ -449,10 +454,11 @@ class SkinModel:
             for t, guess in guesses:
                 x[:] = guess
                 self._set_load(t, design)
-                converged, _, krylov = self._newton_escalating(policy)
+                converged, _, krylov = self._newton_escalating(policy, Factorisation.FIRST_STEP)
                 if not converged:
                     return False
-                policy = Factorisation.FIRST_STEP if krylov > self.config.solver.refactor_krylov else Factorisation.REUSE
+                stale = krylov > self.config.solver.refactor_krylov
+                policy = Factorisation.FIRST_STEP if stale else Factorisation.REUSE
                 if on_frame is not None:
                     on_frame(float(t))
             return True

@@ -14,11 +14,8 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from typing import TypeVar
 
 from mpi4py import MPI
-
-T = TypeVar("T")
 
 
 class CollectiveError(RuntimeError):
@@ -29,7 +26,7 @@ def _message(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
-def collective(comm: MPI.Comm, work: Callable[[], T], expected: tuple[type[BaseException], ...] = (Exception,)) -> T:
+def collective[T](comm: MPI.Comm, work: Callable[[], T], expected: tuple[type[BaseException], ...] = (Exception,)) -> T:
     """Run ``work()`` on every rank; if it raised ``expected`` on any rank, raise on all.
 
     The raised :class:`CollectiveError` carries the message of the lowest failing rank
@@ -48,7 +45,7 @@ def collective(comm: MPI.Comm, work: Callable[[], T], expected: tuple[type[BaseE
     return result
 
 
-def on_root(comm: MPI.Comm, work: Callable[[], T]) -> T:
+def on_root[T](comm: MPI.Comm, work: Callable[[], T]) -> T:
     """Run ``work()`` on rank 0 and broadcast its result, or its error as CollectiveError."""
     result, error = None, None
     if comm.rank == 0:

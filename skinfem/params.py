@@ -49,7 +49,7 @@ class SkinParams:
         return np.array(astuple(self), dtype=float)
 
     @classmethod
-    def from_array(cls, values) -> "SkinParams":
+    def from_array(cls, values) -> SkinParams:
         return cls(*(float(v) for v in values))
 
 

@@ -78,7 +78,7 @@ class SweepPlan:
     bounds: np.ndarray
 
     @classmethod
-    def from_config(cls, config: Config) -> "SweepPlan":
+    def from_config(cls, config: Config) -> SweepPlan:
         sweep = config.sweep
         bounds = np.array([sweep.bounds[name] for name in PARAM_NAMES], dtype=float)
         return cls(

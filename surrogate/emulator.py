@@ -53,7 +53,7 @@ class TrainingRows:
     fields: np.ndarray  # (n, n_cells, 3)
 
     @classmethod
-    def from_dataset(cls, data: StrainDataset, materials: np.ndarray) -> "TrainingRows":
+    def from_dataset(cls, data: StrainDataset, materials: np.ndarray) -> TrainingRows:
         index, inputs, fields = [], [], []
         for i in materials:
             strain = data.strain(int(i))  # (n_des, n_frames, n_cells, 3)
@@ -162,7 +162,7 @@ class Emulator:
         return directory
 
     @classmethod
-    def load(cls, directory: Path | str, device: str = "cpu") -> "Emulator":
+    def load(cls, directory: Path | str, device: str = "cpu") -> Emulator:
         """Read an emulator directory.
 
         Raises:

@@ -83,7 +83,7 @@ class GPBank(torch.nn.Module):
         self.register_buffer("scaled_train_sq", (scaled**2).sum(-1), persistent=False)
 
     @classmethod
-    def from_sklearn(cls, gps: list[GaussianProcessRegressor]) -> "GPBank":
+    def from_sklearn(cls, gps: list[GaussianProcessRegressor]) -> GPBank:
         x_train = gps[0].X_train_
         for gp in gps[1:]:
             if not np.array_equal(gp.X_train_, x_train):

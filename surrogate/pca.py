@@ -25,7 +25,7 @@ class StrainPCA:
     def __init__(self, n_components: int | float = 0.99):
         self.n_components = n_components
 
-    def fit(self, fields: np.ndarray) -> "StrainPCA":
+    def fit(self, fields: np.ndarray) -> StrainPCA:
         """Fit on training fields (n_rows, n_cells)."""
         fields = np.asarray(fields, dtype=float)
         if fields.ndim != 2 or len(fields) < 2:
@@ -94,7 +94,7 @@ class StrainPCA:
         }
 
     @classmethod
-    def from_arrays(cls, arrays, prefix: str) -> "StrainPCA":
+    def from_arrays(cls, arrays, prefix: str) -> StrainPCA:
         pca = cls(n_components=int(len(arrays[f"{prefix}components"])))
         pca.mean_ = np.asarray(arrays[f"{prefix}mean"])
         pca.scale_ = np.asarray(arrays[f"{prefix}scale"])

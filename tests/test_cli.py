@@ -17,7 +17,8 @@ DESIGN = ["--alpha11", "0.05", "--alpha22", "-0.05"]
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory, mesh_dir):
     out = tmp_path_factory.mktemp("cli") / "serial.h5"
-    res = skinid("simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out), "--fields", str(out.with_suffix(".xdmf")))
+    res = skinid("simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out),
+                 "--fields", str(out.with_suffix(".xdmf")))
     assert res.returncode == 0, res.stderr
     return out, res
 
@@ -40,7 +41,8 @@ def test_simulate_writes_the_dataset_contract(serial_run):
 @pytest.mark.skipif(MPIRUN is None, reason="mpirun not found")
 def test_two_ranks_equal_serial(serial_run, mesh_dir, tmp_path):
     out = tmp_path / "mpi.h5"
-    res = skinid("simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out), ranks=2)
+    res = skinid("simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out),
+                 ranks=2)
     assert res.returncode == 0, res.stderr
     serial = StrainDataset.open(serial_run[0])
     parallel = StrainDataset.open(out)
@@ -98,8 +100,9 @@ def test_unknown_config_key_is_named(tmp_path):
 
 
 def test_missing_mesh_dir_file_is_reported(tmp_path):
-    from skinfem.mesh import read_mesh
     from mpi4py import MPI
+
+    from skinfem.mesh import read_mesh
 
     with pytest.raises(FileNotFoundError, match="skinid mesh"):
         read_mesh(tmp_path / "none.msh", MPI.COMM_WORLD)

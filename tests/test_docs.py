@@ -102,11 +102,13 @@ def test_readme_commands_exist():
         "study": _subcommands(inference_cli.build_parser("skinid study")),
     }
     text = README.read_text(encoding="utf-8")
-    code = "\n".join([body for _, body in _blocks(text)] + [m.group(2) for m in INLINE_CODE.finditer(FENCE.sub("", text))])
+    inline = [m.group(2) for m in INLINE_CODE.finditer(FENCE.sub("", text))]
+    code = "\n".join([body for _, body in _blocks(text)] + inline)
     code = re.sub(r"(^|\s)#.*", "", code, flags=re.M)  # shell comments are prose
     named = re.findall(r"\bskinid[ \t]+([a-z][a-z0-9_-]*)(?:[ \t]+([a-z][a-z0-9_-]*))?", code)
     assert named, "the README names no skinid command"
     for command, action in named:
         assert command in ROUTES, f"README names 'skinid {command}', which is not a command ({', '.join(ROUTES)})"
         if command in actions and action and not action.startswith("-"):
-            assert action in actions[command], f"README names 'skinid {command} {action}'; known: {sorted(actions[command])}"
+            known = sorted(actions[command])
+            assert action in actions[command], f"README names 'skinid {command} {action}'; known: {known}"

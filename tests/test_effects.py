@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from skinfem.effects import EFFECTS, principal_prestretch, prestretch_log_strain
+from skinfem.effects import EFFECTS, prestretch_log_strain, principal_prestretch
 from skinfem.params import Design, SkinParams
 
 PARAMS = SkinParams(0.0012, 0.017, 11.0, 0.285, 30.0)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from skinfem.fenics import dolfinx, ufl
 from skinfem.config import MembraneConfig
+from skinfem.fenics import dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy
 from skinfem.model import SkinModel, extrapolate
 from skinfem.params import Design, SkinParams

@@ -115,7 +115,8 @@ def test_sampler_matches_an_exact_linear_gaussian_posterior():
     # exact posterior of the 5 parameters
     A = emu.A.numpy()[:5].T  # (6, 5) per observation
     prec = sum(A.T @ np.diag(1 / (noise_var[o] + emu.var)) @ A for o in range(2))
-    rhs = sum(A.T @ ((w[o] - emu.b.numpy() - design[o] @ emu.A.numpy()[5:]) / (noise_var[o] + emu.var)) for o in range(2))
+    rhs = sum(A.T @ ((w[o] - emu.b.numpy() - design[o] @ emu.A.numpy()[5:]) / (noise_var[o] + emu.var))
+              for o in range(2))
     cov = np.linalg.inv(prec)
     mean = cov @ rhs
     samples = sample_posterior(post, chains=2, warmup=300, draws=1500, seed=3, n_jobs=2, progress=False)
@@ -215,7 +216,8 @@ def test_strain_measures_convert_to_log_strain():
 
 def test_measurement_round_trip_and_interpolation(emulator, data, tmp_path):
     obs = from_dataset(data, 0, designs=[2])[0]
-    path = write_measurement(tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t, sd=np.full((len(obs.fields), 3), 1e-3))
+    path = write_measurement(tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t,
+                             sd=np.full((len(obs.fields), 3), 1e-3))
     m = read_measurement(path, half_length=25)
     np.testing.assert_allclose(m.strain, obs.fields, atol=1e-8)
     # on a window of the block, interpolation masks the cells outside it
@@ -226,7 +228,8 @@ def test_measurement_round_trip_and_interpolation(emulator, data, tmp_path):
     np.testing.assert_allclose(mapped.fields[mapped.mask], obs.fields[mapped.mask], atol=1e-8)
 
 
-GOOD = "# skinid-measurement v1\n# alpha11 = 0.05\n# alpha22 = -0.05\n# t = 1.0\nx,y,exx,eyy,exy\n0,0,0.01,0.02,0\n1,0,0.01,0.02,0\n0,1,0.01,0.02,0\n"
+GOOD = ("# skinid-measurement v1\n# alpha11 = 0.05\n# alpha22 = -0.05\n# t = 1.0\n"
+        "x,y,exx,eyy,exy\n0,0,0.01,0.02,0\n1,0,0.01,0.02,0\n0,1,0.01,0.02,0\n")
 
 
 @pytest.mark.parametrize(

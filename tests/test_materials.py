@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from skinfem.fenics import dolfinx, ufl
 from skinfem.config import MembraneConfig
+from skinfem.fenics import dolfinx, ufl
 from skinfem.materials import (
     LaminaStiffness,
     hgo_energy,

@@ -49,7 +49,8 @@ def test_noisy_dataset(small_dataset, tmp_path):
         meta = json.loads(f.attrs["noise"])
     assert meta["length_mm"] == 1.0 and meta["seed"] == 3
     again = tmp_path / "again.h5"
-    assert skinid("noise", "--data", small_dataset, "--length", "1.0", "--level", "0.05", "--seed", "3", "--out", again).returncode == 0
+    res = skinid("noise", "--data", small_dataset, "--length", "1.0", "--level", "0.05", "--seed", "3", "--out", again)
+    assert res.returncode == 0
     assert np.array_equal(StrainDataset.open(again).strain(), noisy.strain())
     res = skinid("noise", "--data", small_dataset, "--length", "-1", "--level", "0.05", "--out", tmp_path / "bad.h5")
     assert res.returncode == 2 and "length scale must be > 0" in res.stderr

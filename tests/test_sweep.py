@@ -149,7 +149,8 @@ def test_shards_merged_equal_a_single_run(reference, tiny_toml, mesh_dir, tmp_pa
     shards = []
     for i in range(3):
         shards.append(tmp_path / f"shard{i}.h5")
-        res = skinid("sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", shards[-1], "--shard", f"{i}/3", "--quiet")
+        res = skinid("sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", shards[-1], "--shard", f"{i}/3",
+                     "--quiet")
         assert res.returncode == 0, res.stderr
     assert [np.count_nonzero(StrainDataset.open(s).status) for s in shards] == [3, 3, 2]
     res = skinid("merge", *shards, "--out", tmp_path / "merged.h5")

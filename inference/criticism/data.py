@@ -52,7 +52,7 @@ class NoiseModel:
         return self._roots[key]
 
     def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray,
-               model_error: "ModelError | None" = None) -> np.ndarray:
+               model_error: ModelError | None = None) -> np.ndarray:
         """(n_obs, n_pts, 3) residual -> whitened residual (NaN off the mask).
 
         ``xy`` (n_obs, n_pts, 2) points, ``masks`` (n_obs, n_pts), ``model_error`` or None: see
@@ -128,7 +128,7 @@ class Data:
     model_error: ModelError | None = None
 
     @classmethod
-    def from_points(cls, observations: list, noise: NoiseModel) -> "Data":
+    def from_points(cls, observations: list, noise: NoiseModel) -> Data:
         """From observations with ``xy`` (n_o, 2) and ``strain`` (n_o, 3) (e.g. measurements)."""
         n = max(len(o.xy) for o in observations)
         fields = np.full((len(observations), n, 3), np.nan)
@@ -138,7 +138,7 @@ class Data:
             fields[i, : len(o.xy)], xy[i, : len(o.xy)], masks[i, : len(o.xy)] = o.strain, o.xy, True
         return cls(fields, masks, xy, noise)
 
-    def with_model_error(self, model_error: ModelError | None) -> "Data":
+    def with_model_error(self, model_error: ModelError | None) -> Data:
         return Data(self.fields, self.masks, self.xy, self.noise, model_error)
 
     @property

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.criticism.check import CheckResult
-from inference.plots import pyplot, field_grid, save_figure
+from inference.plots import field_grid, pyplot, save_figure
 from skinfem.effects import get_effect
 from skinfem.io import write_atomically
 
@@ -158,12 +158,14 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
              f"| residual RMSE [log strain] | {_fmt(base.rmse)} | {_fmt(base.noise_rms)} |",
              f"| χ²/dof (whitened, dof = {base.dof}) | {base.chi2_per_dof:.3f} | 1 ± {np.sqrt(2 / base.dof):.3f} |",
              f"| posterior-predictive p-value | {base.ppc_p:.3f} | uniform on [0, 1] |",
-             f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} (z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
+             f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} "
+             f"(z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
              ""]
     lines += discretisation_lines(result) + failure_lines(result)
     lines += [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(figures["baseline"])]
     lines += ["", "## 2. Where the model fails", "",
-              "RMS of (measured − model) / sd over each region's points (noise and carried model error alone give 1):", "",
+              "RMS of (measured − model) / sd over each region's points "
+              "(noise and carried model error alone give 1):", "",
               "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
     lines += [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
     lines += ["", "![regions](regions.png)", "", "## 3. Which effect is missing", "",
