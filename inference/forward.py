@@ -35,10 +35,12 @@ from skinfem.config import PARAM_NAMES, Config
 from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
+from skinfem.model import Factorisation
 from skinfem.parallel import collective, on_root
 from skinfem.sensitivity import DisplacementSensitivity
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
+CONTINUATION_ITERATIONS = 8  # Newton iterations from a nearby point's states before ramping instead
 
 
 class ForwardModel:
@@ -177,6 +179,10 @@ class FEForward(ForwardModel):
         self.reused = 0  # simulations read from cache_dir instead of run
         self.continuation = Continuation() if continuation else None
         self.continued = 0  # simulations started from a nearby point's states instead of ramped
+        # Newton iterations of a continued solve before the point is ramped instead, and the
+        # first attempt's factorisation (SkinModel.solve_frames)
+        self.continuation_iterations = CONTINUATION_ITERATIONS
+        self.continuation_factorisation = Factorisation.REUSE
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
@@ -221,7 +227,8 @@ class FEForward(ForwardModel):
 
         start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
         continued = start is not None and model.solve_frames(params, design, start[1], start[0], measure,
-                                                             at_reference)
+                                                             at_reference, self.continuation_iterations,
+                                                             self.continuation_factorisation)
         if not continued:
             out[:] = 0.0
             states.frames.clear()
@@ -234,7 +241,12 @@ class FEForward(ForwardModel):
     def continue_from(self, other: FEForward) -> None:
         """Start this model's next simulations from ``other``'s last converged states (another
         mesh of the same setup, e.g. the refined mesh of a discretisation estimate), each rank
-        from the designs it ran: Newton from the interpolated fields instead of a load ramp."""
+        from the designs it ran: Newton from the interpolated fields instead of a load ramp.
+
+        Newton is then Newton–LU and may take the solver's full ``max_iterations``: from another
+        mesh's fields GMRES preconditioned by the first step's factorisation stalls, and Newton
+        needs more steps than from a nearby point's (quadratic check mesh to its edge
+        refinement, mixed design: 9), while on a refined mesh a load ramp costs more."""
         if self.continuation is None or other.continuation is None:
             return
 
@@ -243,6 +255,8 @@ class FEForward(ForwardModel):
                 self.continuation.record(j, transfer(other.continuation.states(j), other.model.V, self.model.V))
 
         collective(self.comm, interpolate)
+        self.continuation_iterations = self.config.solver.max_iterations
+        self.continuation_factorisation = Factorisation.EVERY_STEP
 
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
         return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}{suffix}"

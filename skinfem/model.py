@@ -170,7 +170,7 @@ class SkinModel:
             },
         )
         self.factorizations = 0  # of the current simulation
-        self._rebuild_pending = False  # the next Newton solve factorises at its first step
+        self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
         cells = top_skin_cells(mesh, self.cell_tags, TAGS["skin"], depth)
         # strain is measured from the unloaded equilibrium u_ref (zero unless pre-stressed)
@@ -416,6 +416,7 @@ class SkinModel:
         on_frame: Callable[[float], None] | None = None,
         on_reference: Callable[[], None] | None = None,
         max_iterations: int = 8,
+        factorisation: Factorisation = Factorisation.REUSE,
     ) -> bool:
         """Parameter continuation: solve the equilibria at the load fractions of ``guesses``
         ((t, dof array) pairs, increasing t) directly, each Newton started from its guess —
@@ -423,9 +424,12 @@ class SkinModel:
         of ramping the load from zero. ``reference_guess`` starts the unloaded equilibrium of a
         pre-stressed model (zero if None).
 
-        A failed Newton solve is retried once with a fresh factorisation, not escalated to
-        Newton–LU (a factorisation per step, up to ``max_iterations`` of them): that escalation
-        is left to the load ramp the caller falls back to.
+        ``factorisation`` is the first attempt's policy: ``REUSE`` (the previous solve's
+        factorisation preconditions GMRES) for guesses from nearby parameters, ``EVERY_STEP``
+        (Newton–LU) for guesses far from equilibrium, such as another mesh's fields, where GMRES
+        with a factorisation from the first step stalls. A failed ``REUSE`` attempt is retried
+        once with a fresh factorisation, not escalated to Newton–LU (up to ``max_iterations``
+        factorisations): that is left to the load ramp the caller falls back to.
 
         Equilibrium does not depend on the load path, so where it is unique the states equal
         :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
@@ -437,6 +441,7 @@ class SkinModel:
             undefined: ramp with :meth:`simulate`), True when every frame converged.
         """
         self._set_snes_option("snes_max_it", max_iterations)
+        most = max(factorisation, Factorisation.FIRST_STEP)
         try:
             self.set_params(params)
             self.factorizations = 0
@@ -445,20 +450,20 @@ class SkinModel:
             if self.prestressed:
                 x[:] = 0.0 if reference_guess is None else reference_guess
                 self._set_load(0.0, design)
-                if not self._newton_escalating(Factorisation.REUSE, Factorisation.FIRST_STEP)[0]:
+                if not self._newton_escalating(factorisation, most)[0]:
                     return False
                 self.u_ref.x.array[:] = x
                 if on_reference is not None:
                     on_reference()
-            policy = Factorisation.REUSE
+            policy = factorisation
             for t, guess in guesses:
                 x[:] = guess
                 self._set_load(t, design)
-                converged, _, krylov = self._newton_escalating(policy, Factorisation.FIRST_STEP)
+                converged, _, krylov = self._newton_escalating(policy, most)
                 if not converged:
                     return False
                 stale = krylov > self.config.solver.refactor_krylov
-                policy = Factorisation.FIRST_STEP if stale else Factorisation.REUSE
+                policy = max(factorisation, Factorisation.FIRST_STEP if stale else Factorisation.REUSE)
                 if on_frame is not None:
                     on_frame(float(t))
             return True
