@@ -34,12 +34,13 @@ LAYERS = {"all": ("skin_layers", "muscle_layers", "membrane_layers"), "but-skin"
 
 
 def variant_config(config, variant: str):
-    """The edge refinement of ``config`` with the layer counts of ``variant`` doubled."""
-    from skinfem.mesh import edge_cell_size
+    """The check's edge refinement of ``config`` with the layer counts of ``variant`` doubled
+    (the others kept)."""
+    from inference.criticism.discretisation import refined_config
 
     m = config.mesh
-    return config.with_changes(mesh={"h_edge": edge_cell_size(m) / 2,
-                                     **{name: 2 * getattr(m, name) for name in LAYERS[variant]}})
+    return refined_config(config, "edge").with_changes(
+        mesh={name: (2 if name in LAYERS[variant] else 1) * getattr(m, name) for name in LAYERS["all"]})
 
 
 def main() -> None:

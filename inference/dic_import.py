@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import re
 import shlex
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
+from skinfem.io import write_atomically
 
 FORMATS = ("vic", "vic9", "davis8", "davis10", "dice", "table")
 LENGTH_UNITS = {"mm": 1.0, "m": 1000.0, "cm": 10.0, "µm": 1e-3, "μm": 1e-3, "um": 1e-3}
@@ -720,18 +720,16 @@ def save_measurement(measurement: Measurement, out: Path | str, block_half: floa
     out = Path(out)
     if out.parent.exists() and not out.parent.is_dir():
         raise MeasurementError(f"cannot write '{out}': '{out.parent}' is not a directory")
-    tmp = out.with_name(f".{out.name}.tmp")
     m = measurement
-    try:
+
+    def write_and_check(tmp: Path) -> None:
         write_measurement(tmp, m.xy, m.strain, m.alpha, m.t, m.sd)
         read_measurement(tmp, block_half)
-        os.replace(tmp, out)
+
+    try:
+        return write_atomically(out, write_and_check)
     except OSError as exc:
         raise MeasurementError(f"cannot write '{out}': {exc.strerror or exc}") from None
-    finally:
-        if tmp.is_file():
-            tmp.unlink()
-    return out
 
 
 # ---------------------------------------------------------------- plausibility
