@@ -19,6 +19,7 @@ import csv
 import math
 import re
 import shlex
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -807,5 +808,6 @@ def plot_field(xy: np.ndarray, strain: np.ndarray, path: Path | str, membrane_ha
         ax.set_title(f"log strain {name}", fontsize=10)
         fig.colorbar(im, ax=ax, shrink=0.85)
     if title:
-        fig.suptitle(title, fontsize=10)
+        lines = [wrapped for line in title.splitlines() for wrapped in textwrap.wrap(line, 130)]
+        fig.suptitle("\n".join(lines), fontsize=10)
     return save_figure(fig, path)
