@@ -287,17 +287,28 @@ class SkinModel:
         then never."""
         self._set_snes_option("snes_lag_preconditioner", lag)
 
-    def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
-        """One SNES solve from the current state, factorising the tangent as ``policy`` says
-        (with ``solver.refactor_krylov = 0`` at every Newton step regardless). Returns
-        (converged, Newton iterations, GMRES iterations per Newton step)."""
+    def _snes_solve(self, rhs: PETSc.Vec | None) -> None:
+        """SNES from the current state: R(u) = 0, or R(u) = ``rhs`` (a residual homotopy step)."""
+        if rhs is None:
+            self.problem.solve()
+            return
+        x = self.problem.x
+        dolfinx.fem.petsc.assign(self.u, x)
+        self.problem.solver.solve(rhs, x)
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        dolfinx.fem.petsc.assign(x, self.u)
+
+    def _newton(self, policy: Factorisation, rhs: PETSc.Vec | None = None) -> tuple[bool, int, float]:
+        """One SNES solve of R(u) = ``rhs`` (None: 0) from the current state, factorising the
+        tangent as ``policy`` says (with ``solver.refactor_krylov = 0`` at every Newton step
+        regardless). Returns (converged, Newton iterations, GMRES iterations per Newton step)."""
         snes = self.problem.solver
         reuse = self.config.solver.refactor_krylov > 0
         if self._rebuild_pending:  # PETSc factorises at this solve's first step anyway
             policy = max(policy, Factorisation.FIRST_STEP)
         if reuse and policy != Factorisation.REUSE:
             self._set_lag(1 if policy == Factorisation.EVERY_STEP else -2)
-        self.problem.solve()
+        self._snes_solve(rhs)
         reason = snes.getConvergedReason()
         its = snes.getIterationNumber()  # 0: converged at the start, no Jacobian built
         if reuse and policy == Factorisation.EVERY_STEP:  # lag back from 1; "never" needs a rebuild first
@@ -325,6 +336,38 @@ class SkinModel:
                 return converged, its, krylov
             self.u.x.array[:] = start
             policy = Factorisation(policy + 1)
+
+    def _residual_homotopy(self, max_cutbacks: int = 4) -> bool:
+        """Newton–LU from the current state ``u0`` when it is far from equilibrium (e.g. another
+        mesh's fields): solve R(u) = (1 - s) R(u0) for s rising from 0 (where u0 solves it) to 1
+        (equilibrium), a full step first and halved steps after a failure, as the load ramp of
+        :meth:`simulate` does. From u0 = 0 this is the load ramp itself. Returns whether s = 1
+        was reached (the state is then the equilibrium; else undefined)."""
+        x = self.u.x.array
+        snes = self.problem.solver
+        residual0 = self.problem.b.duplicate()
+        dolfinx.fem.petsc.assign(self.u, self.problem.x)
+        snes.computeFunction(self.problem.x, residual0)
+        rhs = residual0.duplicate()
+        s, step, cutbacks = 0.0, 1.0, 0
+        try:
+            while s < 1.0:
+                s_new = min(1.0, s + step)
+                saved = x.copy()
+                residual0.copy(rhs)
+                rhs.scale(1.0 - s_new)
+                if self._newton(Factorisation.EVERY_STEP, None if s_new == 1.0 else rhs)[0]:
+                    s, step = s_new, 2 * step
+                    continue
+                x[:] = saved
+                cutbacks += 1
+                step /= 2
+                if cutbacks > max_cutbacks:
+                    return False
+            return True
+        finally:
+            residual0.destroy()
+            rhs.destroy()
 
     def load_fractions(self) -> np.ndarray:
         n = self.config.solver.increments
@@ -429,7 +472,9 @@ class SkinModel:
         (Newton–LU) for guesses far from equilibrium, such as another mesh's fields, where GMRES
         with a factorisation from the first step stalls. A failed ``REUSE`` attempt is retried
         once with a fresh factorisation, not escalated to Newton–LU (up to ``max_iterations``
-        factorisations): that is left to the load ramp the caller falls back to.
+        factorisations): that is left to the load ramp the caller falls back to. A failed
+        ``EVERY_STEP`` attempt continues by a residual homotopy from the same guess
+        (:meth:`_residual_homotopy`), cheaper than a ramp on a fine mesh.
 
         Equilibrium does not depend on the load path, so where it is unique the states equal
         :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
@@ -442,6 +487,13 @@ class SkinModel:
         """
         self._set_snes_option("snes_max_it", max_iterations)
         most = max(factorisation, Factorisation.FIRST_STEP)
+
+        def newton(policy: Factorisation) -> tuple[bool, float]:  # (converged, GMRES per Newton step)
+            if factorisation == Factorisation.EVERY_STEP:
+                return self._residual_homotopy(), 1.0
+            converged, _, krylov = self._newton_escalating(policy, most)
+            return converged, krylov
+
         try:
             self.set_params(params)
             self.factorizations = 0
@@ -450,7 +502,7 @@ class SkinModel:
             if self.prestressed:
                 x[:] = 0.0 if reference_guess is None else reference_guess
                 self._set_load(0.0, design)
-                if not self._newton_escalating(factorisation, most)[0]:
+                if not newton(factorisation)[0]:
                     return False
                 self.u_ref.x.array[:] = x
                 if on_reference is not None:
@@ -459,7 +511,7 @@ class SkinModel:
             for t, guess in guesses:
                 x[:] = guess
                 self._set_load(t, design)
-                converged, _, krylov = self._newton_escalating(policy, most)
+                converged, krylov = newton(policy)
                 if not converged:
                     return False
                 stale = krylov > self.config.solver.refactor_krylov

@@ -168,3 +168,22 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     assert fine.continued == 2
     np.testing.assert_allclose(f_continued, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
+
+
+def test_a_residual_homotopy_reaches_the_ramped_equilibrium_where_newton_fails(small_model):
+    """From zero displacement at the full load Newton capped at 4 iterations fails (the ramp's
+    first increment, a tenth of the load, takes 4); the residual homotopy R(u) = (1 - s) R(0),
+    with the same cap per step, reaches the ramped simulation's equilibrium to the Newton
+    tolerance."""
+    from skinfem.model import Factorisation
+    from skinfem.params import Design, SkinParams
+
+    params, design = SkinParams.from_array(TRUTH), Design(0.05, -0.05)
+    small_model.simulate(params, design)
+    ramped = small_model.u.x.array.copy()
+    zero = [(1.0, np.zeros_like(ramped))]
+    assert not small_model.solve_frames(params, design, zero, max_iterations=4,
+                                        factorisation=Factorisation.FIRST_STEP)
+    assert small_model.solve_frames(params, design, zero, max_iterations=4,
+                                    factorisation=Factorisation.EVERY_STEP)
+    np.testing.assert_allclose(small_model.u.x.array, ramped, atol=1e-8 * np.abs(ramped).max())
