@@ -9,7 +9,8 @@ check mesh this run dominated a check (section 10). Here: one material near the 
 point of that check, the two designs of benchmarks/criticism.py (one per rank) at t = 1, the
 DIC point cloud of that benchmark, the check mesh's run (ramped, then recorded for
 continuation) and, per variant of the edge refinement (edge cells halved; layers through the
-thickness: ``all`` doubled, all ``but-skin``, ``none``), the refined run: dofs,
+thickness: ``all`` doubled, all ``but-skin``, only the ``muscle`` or ``membrane`` layers,
+``none``), the refined run: dofs,
 seconds, whether Newton from the interpolated fields converged, the shift's RMS relative to
 the field, how far each variant's shift is from the ``all`` variant's, and each rank's Newton
 iterations (seconds, iteration, residual norm).
@@ -30,7 +31,7 @@ HERE = Path(__file__).resolve().parent
 CALIBRATED = (1.33e-3, 0.0183, 8.38, 0.280, 29.8)  # the quadratic check's baseline (criticism_q2.json)
 DESIGNS = [(0.05, 0.05), (0.05, -0.05)]
 LAYERS = {"all": ("skin_layers", "muscle_layers", "membrane_layers"), "but-skin": ("muscle_layers", "membrane_layers"),
-          "none": ()}
+          "muscle": ("muscle_layers",), "membrane": ("membrane_layers",), "none": ()}
 
 
 def variant_config(config, variant: str):

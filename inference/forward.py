@@ -41,6 +41,7 @@ from skinfem.sensitivity import DisplacementSensitivity
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 CONTINUATION_ITERATIONS = 8  # Newton iterations from a nearby point's states before ramping instead
+TRANSFER_ITERATIONS = 12  # per homotopy step from another mesh's states (the slowest measured: 9)
 
 
 class ForwardModel:
@@ -243,10 +244,11 @@ class FEForward(ForwardModel):
         mesh of the same setup, e.g. the refined mesh of a discretisation estimate), each rank
         from the designs it ran: Newton from the interpolated fields instead of a load ramp.
 
-        Newton is then Newton–LU and may take the solver's full ``max_iterations``: from another
-        mesh's fields GMRES preconditioned by the first step's factorisation stalls, and Newton
-        needs more steps than from a nearby point's (quadratic check mesh to its edge
-        refinement, mixed design: 9), while on a refined mesh a load ramp costs more."""
+        Newton is then Newton–LU, up to ``TRANSFER_ITERATIONS`` per step of a residual homotopy
+        (:meth:`skinfem.model.SkinModel.solve_frames`): from another mesh's fields GMRES
+        preconditioned by the first step's factorisation stalls, and Newton needs more steps
+        than from a nearby point's (quadratic check mesh to its edge refinement, mixed design:
+        9), while on a refined mesh a load ramp costs more."""
         if self.continuation is None or other.continuation is None:
             return
 
@@ -255,7 +257,7 @@ class FEForward(ForwardModel):
                 self.continuation.record(j, transfer(other.continuation.states(j), other.model.V, self.model.V))
 
         collective(self.comm, interpolate)
-        self.continuation_iterations = self.config.solver.max_iterations
+        self.continuation_iterations = TRANSFER_ITERATIONS
         self.continuation_factorisation = Factorisation.EVERY_STEP
 
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:

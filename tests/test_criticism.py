@@ -269,3 +269,58 @@ def test_refinement_halves_every_size_including_the_membrane_edge(small_config):
     assert (fine.mesh.skin_layers, fine.mesh.muscle_layers) == (2, 4)
     assert edge_cell_size(edged.mesh) == 1.5 and edge_cell_size(fine.mesh) == 0.75
     assert edge_cell_size(small_config.mesh) == 2.0 and refined_config(small_config).mesh.h_edge == 0.0
+
+
+def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_an_effect(taylor_at_truth):
+    """A check mesh whose error is 2.5 times its two-mesh shift (a refined mesh that is itself far
+    from converged), with a shift that looks partly like a pre-stretch: corrected by the shift
+    alone (amplitude fixed at 1) the remaining 1.5 shifts are blamed on a pre-stretch; with the
+    amplitude calibrated (CorrectedForward) it is found (2.5 within 3 sd), the residual is noise
+    and no effect is named. Control: a real pre-stretch on top is still found."""
+    from inference.criticism.discretisation import AMPLITUDE, CorrectedForward
+
+    forward, xy = taylor_at_truth
+    eps_xx = forward.jac[..., forward.names.index("pre_stretch.eps_xx")]
+    shift = 0.02 * eps_xx * (1.0 + 0.8 * np.sin(xy[None, :, 0:1] / 3.0))
+    corrected = CorrectedForward(forward, shift)
+    noise = NoiseModel(**NOISE)
+    x0 = np.append(forward.x0, 1.0)
+    free = [*range(5), corrected.names.index(AMPLITUDE)]
+    mesh_error = forward.f0 + 2.5 * shift + noise.sample(xy, (1,), np.random.default_rng(3))
+    data = Data(mesh_error, np.ones((1, len(xy)), bool), xy[None], noise)
+
+    fixed = calibrate(corrected, data, x0, list(range(5)), max_iterations=30)
+    blamed = diagnose(corrected, fixed, data, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    assert blamed.best is not None and blamed.best.effect == "pre_stretch"
+
+    fitted = calibrate(corrected, data, x0, free, max_iterations=30)
+    assert abs(fitted.x[-1] - 2.5) < 3 * fitted.sd[-1]
+    d = diagnose(corrected, fitted, data, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    assert d.best is None and not d.metrics.structured
+
+    x_true = forward.x0.copy()
+    for name, value in PRESTRETCH.items():
+        x_true[forward.names.index(name)] = value
+    with_effect = Data(mesh_error + forward(x_true) - forward.f0, data.masks, data.xy, noise)
+    fitted = calibrate(corrected, with_effect, x0, free, max_iterations=30)
+    d = diagnose(corrected, fitted, with_effect, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    assert d.best is not None and d.best.effect == "pre_stretch"
+
+
+def test_the_corrected_models_jacobian_holds_the_shift_as_the_amplitudes_column(taylor_at_truth):
+    from inference.criticism.discretisation import AMPLITUDE, CorrectedForward
+
+    forward, xy = taylor_at_truth
+    shift = np.random.default_rng(0).normal(size=forward.f0.shape) * 1e-3
+    corrected = CorrectedForward(forward, shift)
+    x = np.append(forward.x0, 1.7)
+    names = ["mu", AMPLITUDE, "theta"]
+    ((fields, jac),) = corrected.evaluate_with_jacobian([x], names)
+    np.testing.assert_allclose(fields, forward.f0 + 1.7 * shift)
+    for k, name in enumerate(names):
+        i = corrected.names.index(name)
+        h = 1e-3 * np.ptp(corrected.bounds[i])
+        up, down = x.copy(), x.copy()
+        up[i] += h
+        down[i] -= h
+        np.testing.assert_allclose(jac[..., k], (corrected(up) - corrected(down)) / (2 * h), atol=1e-9)

@@ -221,7 +221,8 @@ def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, st
             ) -> tuple[ForwardModel, Data, Calibration, DiscretisationError | None]:
     """The baseline calibration; with ``settings.discretisation`` the mesh's own error is
     estimated at it (``refined()``: the model on the refined mesh; one run per design), the
-    model corrected, the data given the carried model error, and the baseline recalibrated.
+    model corrected by a fitted multiple of it (:class:`CorrectedForward`), the data given the
+    carried model error, and the baseline recalibrated with that multiple.
     Returns (model, data, baseline, error)."""
     baseline = calibrate(forward, data, start, list(range(5)), max_iterations=settings.max_iterations)
     if not settings.discretisation:
@@ -230,7 +231,9 @@ def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, st
     fine.continue_from(forward)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data)
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
-    baseline = calibrate(model, data, baseline.x, list(range(5)), max_iterations=settings.max_iterations // 2)
+    x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
+    baseline = calibrate(model, data, x0, free, max_iterations=settings.max_iterations // 2)
+    disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
     timings.refined_fe_runs, timings.refined_s = fine.runs, disc.seconds
     timings.refined_fe_runs_continued = fine.continued
     return model, data, baseline, disc

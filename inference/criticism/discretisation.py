@@ -6,9 +6,11 @@ layers through the thickness, :func:`refined_layers`): shift = f_h/2(x) - f_h(x)
 measured point. Under first-order convergence of the surface strain (Q1 near the membrane's
 edges and corners) the error of f_h is about -2 shift and that of f_h/2 about -shift. The check then
 
-- **corrects** its model by the shift (:class:`CorrectedForward`: f_h(x') + shift for every
-  x', a two-level correction that treats the shift as constant near x), so that it compares
-  at the refined mesh's accuracy, and
+- **corrects** its model by a multiple of the shift (:class:`CorrectedForward`: f_h(x') + a
+  shift for every x', a two-level correction that treats the shift as constant near x), with
+  the amplitude a calibrated together with the skin parameters (a = 1 is the refined mesh's
+  field, a = 2 first-order Richardson extrapolation; a two-mesh estimate does not know the
+  order, nor whether the refined mesh is in the asymptotic range), and
 - **carries** the remaining error, sd = the local RMS of the shift (within h of the point) per
   component, correlated over the shift's own correlation length, as a model-form variance
   next to the noise (:class:`inference.criticism.data.ModelError`), so that a residual the
@@ -91,6 +93,8 @@ class DiscretisationError:
         relative: RMS of the check mesh's error (2 |shift|) / RMS of the measured field.
         sigma: RMS of the check mesh's error in noise sd units.
         seconds: wall time of the refined simulation(s).
+        amplitude, amplitude_sd: the multiple of the shift the calibrated, corrected model uses
+            (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
     """
 
     mesh: str
@@ -101,6 +105,8 @@ class DiscretisationError:
     relative: float
     sigma: float
     seconds: float
+    amplitude: float | None = None
+    amplitude_sd: float | None = None
 
     def sd(self, xy: np.ndarray, masks: np.ndarray) -> np.ndarray:
         """(n_obs, n_pts, 3) sd of the corrected model's remaining error: the local RMS of the
@@ -139,8 +145,12 @@ class DiscretisationError:
         text = (f"Discretisation error of the check's mesh ({self.mesh}) at the calibrated parameters: "
                 f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS "
                 f"(two-mesh estimate with {self.refined}); "
-                f"the model is corrected by the refined mesh and its remaining error ({self.sigma / 2:.1f} sigma) is "
-                "carried next to the noise.")
+                f"the model is corrected by a fitted multiple of the refined mesh's shift and its remaining error "
+                f"({self.sigma / 2:.1f} sigma) is carried next to the noise.")
+        if self.amplitude is not None:
+            text += (f" The measurement puts the correction at {self.amplitude:.2f} ± {self.amplitude_sd:.2f} times "
+                     "the shift (1: the refined mesh's field; 2: first-order extrapolation"
+                     f"{'; above 2: the refined mesh is itself far from converged' if self.amplitude > 2.5 else ''}).")
         if not self.resolved:
             text += (f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
                      f"The error lives at the membrane edge: under first-order convergence a mesh with cells of "
@@ -196,11 +206,24 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data) -> D
     )
 
 
+AMPLITUDE = "discretisation.amplitude"  # the multiple of the two-mesh shift the model is corrected by
+AMPLITUDE_BOUNDS = (0.0, 4.0)
+
+
 class CorrectedForward(ForwardModel):
-    """``base`` plus a fixed field ``shift`` (n_obs, n_pts, 3): the two-level correction."""
+    """``base`` corrected by a multiple ``a`` of a fixed field ``shift`` (n_obs, n_pts, 3):
+    f_h(x) + a shift, with ``a`` the last parameter (``AMPLITUDE``, in ``AMPLITUDE_BOUNDS``,
+    null 1: the refined mesh's field). Richardson extrapolation of order p puts the converged
+    field at a = 2^p / (2^p - 1) (first order: 2, high order: 1); a refined mesh that is itself
+    outside the asymptotic range needs more. Calibrated with the skin parameters, ``a`` lets the
+    measurement say how far the mesh is from converged along the direction refinement showed,
+    so that a candidate effect must explain more than a larger or smaller discretisation error."""
 
     def __init__(self, base: ForwardModel, shift: np.ndarray):
-        self.names, self.bounds, self.null, self.base, self.shift = base.names, base.bounds, base.null, base, shift
+        self.base, self.shift = base, shift
+        self.names = [*base.names, AMPLITUDE]
+        self.bounds = np.vstack([base.bounds, AMPLITUDE_BOUNDS])
+        self.null = np.append(base.null, 1.0)
 
     @property
     def runs(self) -> int:
@@ -211,9 +234,20 @@ class CorrectedForward(ForwardModel):
         return self.base.exact_jacobian
 
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
-        return [None if f is None else f + self.shift for f in self.base.evaluate_many(points)]
+        fields = self.base.evaluate_many([x[:-1] for x in points])
+        return [None if f is None else f + x[-1] * self.shift for x, f in zip(points, fields)]
 
     def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
                                names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
-        results = self.base.evaluate_with_jacobian(points, names)
-        return [None if r is None else (r[0] + self.shift, r[1]) for r in results]
+        base_names = [n for n in names if n != AMPLITUDE]
+        results = self.base.evaluate_with_jacobian([x[:-1] for x in points], base_names)
+        out = []
+        for x, result in zip(points, results):
+            if result is None:
+                out.append(None)
+                continue
+            fields, derivative = result
+            columns = iter(np.moveaxis(derivative, -1, 0))
+            jac = np.stack([self.shift if n == AMPLITUDE else next(columns) for n in names], -1) if names else derivative
+            out.append((fields + x[-1] * self.shift, jac))
+        return out

@@ -10,7 +10,7 @@ import numpy as np
 
 from inference.criticism.check import CheckResult
 from inference.plots import field_grid, pyplot, save_figure
-from skinfem.effects import get_effect
+from skinfem.effects import EFFECTS, get_effect
 from skinfem.io import write_atomically
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
@@ -113,7 +113,7 @@ def discretisation_lines(result: CheckResult) -> list[str]:
     return ["### The check's own discretisation error", "", disc.summary(), "",
             "| | RMS, share of the field | RMS [noise sd] |", "|---|---|---|",
             f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
-            f"| after the refined-mesh correction (carried in the covariance) | {disc.relative / 2:.1%} | "
+            f"| after the fitted correction (carried in the covariance) | {disc.relative / 2:.1%} | "
             f"{disc.sigma / 2:.2f} |", "",
             f"The carried error is correlated between points like the two meshes' difference: "
             f"{1 - result.data.model_error.nugget:.0%} of its variance over {result.data.model_error.length:.2g} mm, "
@@ -198,7 +198,7 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
             cells.append(f"{_fmt(e['value'])} ± {_fmt(e['sd'])}" if e else "—")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     final = result.versions[-1].calibration
-    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:])]
+    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:]) if name in EFFECTS]
     for name in added:
         values = {q.split(".", 1)[1]: float(final.x[final.names.index(q)]) for q in get_effect(name).qualified_names()}
         lines += ["", f"{name} in the final version: {get_effect(name).describe(values)}"]
@@ -233,6 +233,7 @@ def report_dict(result: CheckResult) -> dict:
             "mesh": result.discretisation.mesh, "refined": result.discretisation.refined,
             "relative": result.discretisation.relative, "sigma": result.discretisation.sigma,
             "resolved": result.discretisation.resolved, "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
+            "amplitude": result.discretisation.amplitude, "amplitude_sd": result.discretisation.amplitude_sd,
             "carried_correlation_length_mm": result.data.model_error.length,
             "carried_nugget": result.data.model_error.nugget},
         "noise_statement": {"consistent": result.noise_statement.consistent, "factor": result.noise_statement.factor,
