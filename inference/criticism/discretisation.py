@@ -248,6 +248,7 @@ class CorrectedForward(ForwardModel):
                 continue
             fields, derivative = result
             columns = iter(np.moveaxis(derivative, -1, 0))
-            jac = np.stack([self.shift if n == AMPLITUDE else next(columns) for n in names], -1) if names else derivative
-            out.append((fields + x[-1] * self.shift, jac))
+            if names:
+                derivative = np.stack([self.shift if n == AMPLITUDE else next(columns) for n in names], -1)
+            out.append((fields + x[-1] * self.shift, derivative))
         return out
