@@ -70,7 +70,7 @@ def main() -> None:
     material = int(np.flatnonzero(data.split)[0])
     mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
     observed = ObservedWeights.project(emulator, from_dataset(data, material, [mixed], [-1]))
-    results = {"emulator": str(args.emulator), "n_gp_rows": emulator.meta["n_gp_rows"],
+    results = {"emulator": str(args.emulator), "n_gp_rows": emulator.provenance.n_gp_rows,
                "n_gps": int(sum(emulator.n_weights.values())), "material": material}
     for gp_variance in args.variants:
         post = SkinPosterior(emulator, observed, gp_variance=gp_variance)
@@ -99,7 +99,7 @@ def main() -> None:
     from skinfem.config import config_from_toml
 
     all_results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    name = config_from_toml(emulator.meta["dataset_config"]).name
+    name = config_from_toml(emulator.provenance.dataset_config).name
     results = {**all_results.get(name, {}), **results}  # --skip-paper keeps the recorded paper run
     if "paper_configuration" in results:
         paper_rate = results["paper_configuration"]["ess_per_second"]

@@ -77,8 +77,8 @@ def main() -> None:
             "dataset": str(args.data),
             "config": data.config.name,
             "gp_fraction": fraction,
-            "n_gp_rows": emulator.meta["n_gp_rows"],
-            "n_training_rows": emulator.meta["n_training_rows"],
+            "n_gp_rows": emulator.provenance.n_gp_rows,
+            "n_training_rows": emulator.provenance.n_training_rows,
             "n_components": emulator.n_weights,
             "explained_variance_at_M": {c: float(np.cumsum(p.explained_variance_ratio_)[p.n_components_ - 1])
                                         for c, p in emulator.pcas.items()},

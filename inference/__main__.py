@@ -191,8 +191,7 @@ def cmd_infer(args) -> None:
             raise ValueError("--data needs --material")
         obs = from_dataset(StrainDataset.open(args.data), args.material, _ints(args.designs), _ints(args.frames))
     else:
-        half = float(emulator.meta.get("block_half_length", 25.0))
-        obs = from_measurements(args.measurement, emulator.xy, half)
+        obs = from_measurements(args.measurement, emulator.xy, emulator.provenance.block_half_length)
     summary = posterior_of(emulator, obs, settings_of(args), args.out, noise=args.noise)
     print_summary(summary, args.out)
 
@@ -266,7 +265,7 @@ def check_inputs(args):
     if args.config is not None:
         config = load_config(args.config)
     elif emulator is not None:
-        config = config_from_toml(emulator.meta["dataset_config"])
+        config = config_from_toml(emulator.provenance.dataset_config)
     else:
         raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
     bounds = (emulator.param_bounds if emulator is not None

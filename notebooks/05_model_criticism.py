@@ -38,7 +38,7 @@ from surrogate.emulator import Emulator
 emulator_dir = Path(os.environ.get("SKINID_EMULATOR", "../out/demo/emulator"))
 mesh_dir = Path(os.environ.get("SKINID_MESH_DIR", "../meshes"))
 out = Path(os.environ.get("SKINID_NOTEBOOK_OUT", "../out/notebooks")) / "05"
-config = config_from_toml(Emulator.load(emulator_dir).meta["dataset_config"])
+config = config_from_toml(Emulator.load(emulator_dir).provenance.dataset_config)
 
 # %% [markdown]
 # The registry of candidate effects: each modifies the UFL model and declares its parameters.

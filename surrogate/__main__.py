@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             plot_explained_variance(emulator, args.out / "explained_variance.png")
             print(
                 f"fitted {sum(emulator.n_weights.values())} GPs ({emulator.n_weights}) on "
-                f"{emulator.meta['n_gp_rows']} of {emulator.meta['n_training_rows']} training rows "
+                f"{emulator.provenance.n_gp_rows} of {emulator.provenance.n_training_rows} training rows "
                 f"in {time.perf_counter() - start:.1f} s\nwrote {args.out}"
             )
             if not args.no_validate:

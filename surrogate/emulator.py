@@ -7,8 +7,9 @@ component (``xx``, ``yy`` and optionally ``xy``), concatenated component by comp
 fields reconstructed from them (inverse PCA).
 
 Emulator directory (written by :meth:`Emulator.save`):
-    meta.json   format, inputs, bounds, components and PC counts, training split, scores,
-                versions, fitting options and time
+    meta.json   format, inputs, bounds, components and PC counts, and the entries of
+                :class:`EmulatorProvenance` (dataset, training split, fitting options and
+                time, versions, validation scores)
     pca.npz     per component: mean, scale, components, explained_variance_ratio; cell xy, volume
     gp.npz      the GP bank (see :class:`surrogate.gp.GPBank`)
     sklearn_gps.joblib   the fitted scikit-learn regressors (reference implementation)
@@ -18,7 +19,9 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+import tomllib
+import zipfile
+from dataclasses import asdict, dataclass, replace
 from importlib import metadata
 from pathlib import Path
 
@@ -34,6 +37,7 @@ INPUT_NAMES = ("mu", "k1", "k2", "kappa", "theta", "alpha11_t", "alpha22_t")
 COMPONENTS = ("xx", "yy", "xy")
 FORMAT = "skinid-emulator"
 FORMAT_VERSION = 1
+REFIT = "refit the emulator with 'skinid surrogate fit'"
 
 
 def model_inputs(params, alpha, t) -> np.ndarray:
@@ -67,6 +71,132 @@ class TrainingRows:
         return cls(np.array(index), np.concatenate(inputs), np.concatenate(fields))
 
 
+@dataclass(frozen=True)
+class HeldOutScores:
+    """Scores of one strain component on the held-out materials (see :mod:`surrogate.validation`)."""
+
+    min_r2: float  # smallest R^2 over the component's PC weights [-]
+    field_rmse: float  # RMS error of the emulated field [-] (strain)
+    field_rmse_relative: float  # field_rmse over the RMS simulated strain [-]
+
+
+@dataclass(frozen=True)
+class EmulatorProvenance:
+    """Where an emulator came from and how it was fitted: the entries of ``meta.json`` that
+    are not derived from the emulator's arrays.
+
+    Attributes:
+        dataset: the dataset (.h5) it was fitted on (absolute path at fit time).
+        dataset_config: that dataset's configuration as TOML text (``skinfem.config.config_from_toml``).
+        mesh_sha256: SHA-256 of the dataset's mesh; data to validate on must share it.
+        block_half_length: half the side of the simulated block [mm]; the skin cells lie in
+            [-block_half_length, block_half_length]^2.
+        train_materials: material indices of the dataset's training split (``split == 0``).
+        test_materials: material indices of its test split (``split == 1``).
+        n_training_rows: (material, design, frame) rows the PCA was fitted on.
+        n_gp_rows: the seeded subset of those rows the GPs were fitted on.
+        gp_fraction: the requested share of training rows for the GPs [-].
+        restarts: optimizer restarts per GP.
+        seed: seed of the GP-row subset and of the optimizer restarts.
+        explained_variance_ratio: per component, the first (at most 20) PCA explained-variance
+            ratios [-].
+        fit_seconds: wall time [s] of the fit: ``"pca"`` (rows and PCA), ``"total"`` (PCA and GPs).
+        versions: package versions at fit time (skinid, scikit-learn, torch, numpy).
+        validation: per component, the scores on the held-out materials; None until
+            :func:`surrogate.validation.validate_directory` has run.
+    """
+
+    dataset: Path
+    dataset_config: str
+    mesh_sha256: str
+    block_half_length: float
+    train_materials: tuple[int, ...]
+    test_materials: tuple[int, ...]
+    n_training_rows: int
+    n_gp_rows: int
+    gp_fraction: float
+    restarts: int
+    seed: int
+    explained_variance_ratio: dict[str, tuple[float, ...]]
+    fit_seconds: dict[str, float]
+    versions: dict[str, str]
+    validation: dict[str, HeldOutScores] | None = None
+
+    def to_json(self) -> dict:
+        """The ``meta.json`` entries (JSON types), as :meth:`from_json` reads them."""
+        out = {
+            "dataset": str(self.dataset),
+            "dataset_config": self.dataset_config,
+            "mesh_sha256": self.mesh_sha256,
+            "block_half_length": self.block_half_length,
+            "train_materials": list(self.train_materials),
+            "test_materials": list(self.test_materials),
+            "n_training_rows": self.n_training_rows,
+            "n_gp_rows": self.n_gp_rows,
+            "gp_fraction": self.gp_fraction,
+            "restarts": self.restarts,
+            "seed": self.seed,
+            "explained_variance_ratio": {c: list(r) for c, r in self.explained_variance_ratio.items()},
+            "fit_seconds": dict(self.fit_seconds),
+            "versions": dict(self.versions),
+        }
+        if self.validation is not None:
+            out["validation"] = {c: asdict(s) for c, s in self.validation.items()}
+        return out
+
+    @classmethod
+    def from_json(cls, meta: dict) -> EmulatorProvenance:
+        """Read the entries of a ``meta.json`` dict (its format entries are ignored).
+
+        Raises:
+            KeyError: an entry is missing.
+        """
+        validation = meta.get("validation")
+        return cls(
+            dataset=Path(meta["dataset"]),
+            dataset_config=meta["dataset_config"],
+            mesh_sha256=meta["mesh_sha256"],
+            block_half_length=_block_half_length(meta),
+            train_materials=tuple(meta["train_materials"]),
+            test_materials=tuple(meta["test_materials"]),
+            n_training_rows=meta["n_training_rows"],
+            n_gp_rows=meta["n_gp_rows"],
+            gp_fraction=meta["gp_fraction"],
+            restarts=meta["restarts"],
+            seed=meta["seed"],
+            explained_variance_ratio={c: tuple(r) for c, r in meta["explained_variance_ratio"].items()},
+            fit_seconds=dict(meta["fit_seconds"]),
+            versions=dict(meta["versions"]),
+            validation=None if validation is None else {c: HeldOutScores(**s) for c, s in validation.items()},
+        )
+
+    def validated(self, scores: dict[str, HeldOutScores]) -> EmulatorProvenance:
+        """A copy with the held-out scores recorded."""
+        return replace(self, validation=dict(scores))
+
+
+def _block_half_length(meta: dict) -> float:
+    """``block_half_length`` [mm] of a ``meta.json`` dict; emulators fitted before it was
+    recorded: half the ``mesh.length`` of their dataset's configuration."""
+    if "block_half_length" in meta:
+        return meta["block_half_length"]
+    return tomllib.loads(meta["dataset_config"])["mesh"]["length"] / 2
+
+
+def _read_npz(path: Path, read):
+    """``read(arrays)`` of the arrays in ``path``.
+
+    Raises:
+        ValueError: the file is truncated or corrupt, or lacks an array ``read`` needs.
+    """
+    try:
+        with np.load(path) as arrays:
+            return read(arrays)
+    except (zipfile.BadZipFile, KeyError, EOFError, ValueError) as exc:
+        problem = exc.args[0] if isinstance(exc, KeyError) else exc
+        raise ValueError(f"'{path}' is truncated or corrupt ({problem}): {REFIT}") from exc
+
+
 @dataclass
 class Emulator:
     """PCA per strain component + one GP per retained PC weight."""
@@ -77,7 +207,7 @@ class Emulator:
     upper: np.ndarray
     xy: np.ndarray  # (n_cells, 2) skin-cell centroids [mm]
     volume: np.ndarray  # (n_cells,) [mm^3]
-    meta: dict = field(default_factory=dict)
+    provenance: EmulatorProvenance
     sklearn_gps: list | None = None
 
     # -- sizes ---------------------------------------------------------------------------
@@ -139,6 +269,7 @@ class Emulator:
 
     # -- persistence ---------------------------------------------------------------------
     def save(self, directory: Path | str) -> Path:
+        """Write the emulator directory (see the module docstring); returns it."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         arrays = {"xy": self.xy, "volume": self.volume}
@@ -148,8 +279,13 @@ class Emulator:
         np.savez(directory / "gp.npz", **self.gps.to_arrays())
         if self.sklearn_gps is not None:
             joblib.dump(self.sklearn_gps, directory / "sklearn_gps.joblib")
+        self.save_meta(directory)
+        return directory
+
+    def save_meta(self, directory: Path) -> None:
+        """(Re)write ``meta.json`` of an emulator directory: format entries + provenance."""
         meta = {
-            **self.meta,
+            **self.provenance.to_json(),
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
             "inputs": list(INPUT_NAMES),
@@ -159,14 +295,14 @@ class Emulator:
             "n_weights": self.n_weights,
         }
         (directory / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
-        return directory
 
     @classmethod
     def load(cls, directory: Path | str, device: str = "cpu") -> Emulator:
         """Read an emulator directory.
 
         Raises:
-            FileNotFoundError / ValueError: not an emulator directory, or another format version.
+            FileNotFoundError / ValueError: not an emulator directory, another format version,
+                or a truncated or corrupt file.
         """
         directory = Path(directory)
         meta_path = directory / "meta.json"
@@ -181,11 +317,15 @@ class Emulator:
                 f"(skinid {meta.get('versions', {}).get('skinid', '?')}); this skinid reads "
                 f"format {FORMAT_VERSION}: refit it with 'skinid surrogate fit'"
             )
-        with np.load(directory / "pca.npz") as arrays:
-            pcas = {c: StrainPCA.from_arrays(arrays, f"{c}_") for c in meta["components"]}
-            xy, volume = arrays["xy"], arrays["volume"]
-        with np.load(directory / "gp.npz") as arrays:
-            gps = GPBank(dict(arrays)).to(device)
+        try:
+            provenance = EmulatorProvenance.from_json(meta)
+        except KeyError as exc:
+            raise ValueError(f"'{meta_path}' has no entry {exc}: {REFIT}") from exc
+        pcas, xy, volume = _read_npz(
+            directory / "pca.npz",
+            lambda a: ({c: StrainPCA.from_arrays(a, f"{c}_") for c in meta["components"]}, a["xy"], a["volume"]),
+        )
+        gps = _read_npz(directory / "gp.npz", GPBank).to(device)
         sk_path = directory / "sklearn_gps.joblib"
         return cls(
             pcas=pcas,
@@ -194,7 +334,7 @@ class Emulator:
             upper=np.array(meta["upper"]),
             xy=xy,
             volume=volume,
-            meta=meta,
+            provenance=provenance,
             sklearn_gps=joblib.load(sk_path) if sk_path.exists() else None,
         )
 
@@ -238,22 +378,22 @@ def fit_emulator(
     x_unit = (rows.inputs[subset] - lower) / (upper - lower)
     pca_seconds = time.perf_counter() - start
     gps = fit_gps(x_unit, weights[subset], restarts=restarts, seed=seed, n_jobs=n_jobs)
-    meta = {
-        "dataset": str(data.path.resolve()),
-        "dataset_config": data.config.to_toml(),
-        "mesh_sha256": data.mesh_sha256,
-        "block_half_length": data.config.mesh.length / 2,
-        "train_materials": train.tolist(),
-        "test_materials": np.flatnonzero(data.split == 1).tolist(),
-        "n_training_rows": int(len(rows.index)),
-        "n_gp_rows": int(n_gp),
-        "gp_fraction": gp_fraction,
-        "restarts": restarts,
-        "seed": seed,
-        "explained_variance_ratio": {c: p.explained_variance_ratio_[:20].tolist() for c, p in pcas.items()},
-        "fit_seconds": {"pca": pca_seconds, "total": time.perf_counter() - start},
-        "versions": {n: metadata.version(n) for n in ("skinid", "scikit-learn", "torch", "numpy")},
-    }
+    provenance = EmulatorProvenance(
+        dataset=data.path.resolve(),
+        dataset_config=data.config.to_toml(),
+        mesh_sha256=data.mesh_sha256,
+        block_half_length=data.config.mesh.length / 2,
+        train_materials=tuple(train.tolist()),
+        test_materials=tuple(np.flatnonzero(data.split == 1).tolist()),
+        n_training_rows=int(len(rows.index)),
+        n_gp_rows=int(n_gp),
+        gp_fraction=gp_fraction,
+        restarts=restarts,
+        seed=seed,
+        explained_variance_ratio={c: tuple(p.explained_variance_ratio_[:20].tolist()) for c, p in pcas.items()},
+        fit_seconds={"pca": pca_seconds, "total": time.perf_counter() - start},
+        versions={n: metadata.version(n) for n in ("skinid", "scikit-learn", "torch", "numpy")},
+    )
     emulator = Emulator(
         pcas=pcas,
         gps=GPBank.from_sklearn(gps),
@@ -261,7 +401,7 @@ def fit_emulator(
         upper=upper,
         xy=data.xy,
         volume=data.volume,
-        meta=meta,
+        provenance=provenance,
         sklearn_gps=gps,
     )
     return emulator

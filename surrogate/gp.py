@@ -14,6 +14,7 @@ white-noise level -- with autograd gradients.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 
 import numpy as np
 import torch
@@ -73,7 +74,7 @@ class GPBank(torch.nn.Module):
 
     ARRAYS = ("x_train", "length_scale", "constant", "noise", "alpha", "chol", "y_mean", "y_std")
 
-    def __init__(self, arrays: dict[str, np.ndarray]):
+    def __init__(self, arrays: Mapping[str, np.ndarray]):
         super().__init__()
         for name in self.ARRAYS:
             self.register_buffer(name, torch.as_tensor(np.asarray(arrays[name]), dtype=torch.float64))

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from skinfem.io import StrainDataset
-from surrogate.emulator import Emulator, TrainingRows
+from surrogate.emulator import Emulator, HeldOutScores, TrainingRows
 
 
 def r2_score(true: np.ndarray, pred: np.ndarray) -> np.ndarray:
@@ -31,7 +31,7 @@ def validate(emulator: Emulator, data: StrainDataset) -> tuple[dict, dict]:
     Returns:
         (report, arrays): the JSON-able report and the true/predicted weights for plots.
     """
-    if data.mesh_sha256 != emulator.meta.get("mesh_sha256"):
+    if data.mesh_sha256 != emulator.provenance.mesh_sha256:
         raise ValueError(f"'{data.path}' was simulated on another mesh than the emulator's data")
     test = np.flatnonzero(data.split == 1)
     if len(test) == 0:
@@ -124,19 +124,22 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
     return Path(path)
 
 
+def held_out_scores(report: dict) -> dict[str, HeldOutScores]:
+    """The per-component scores of a :func:`validate` report that ``meta.json`` records."""
+    return {
+        c: HeldOutScores(min_r2=r["min_r2"], field_rmse=r["field_rmse"], field_rmse_relative=r["field_rmse_relative"])
+        for c, r in report["components"].items()
+    }
+
+
 def validate_directory(directory: Path | str, data_path: Path | str | None = None) -> dict:
-    """Validate a saved emulator, write ``validation.json`` + ``validation.png`` into it."""
+    """Validate a saved emulator: ``validation.json`` + ``validation.png`` into it, scores into ``meta.json``."""
     directory = Path(directory)
     emulator = Emulator.load(directory)
-    data = StrainDataset.open(data_path or emulator.meta["dataset"])
+    data = StrainDataset.open(data_path or emulator.provenance.dataset)
     report, arrays = validate(emulator, data)
     (directory / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
     plot_predicted_vs_true(emulator, arrays, directory / "validation.png")
-    meta_path = directory / "meta.json"
-    meta = json.loads(meta_path.read_text())
-    meta["validation"] = {
-        c: {k: v[k] for k in ("min_r2", "field_rmse", "field_rmse_relative")}
-        for c, v in report["components"].items()
-    }
-    meta_path.write_text(json.dumps(meta, indent=2) + "\n")
+    emulator.provenance = emulator.provenance.validated(held_out_scores(report))
+    emulator.save_meta(directory)
     return report

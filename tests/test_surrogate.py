@@ -63,8 +63,8 @@ def test_cli_fit_and_validate(small_dataset, tmp_path):
                  "--gp-fraction", "0.2", "--restarts", "0")
     assert res.returncode == 0, res.stderr
     assert "R² per PC" in res.stdout
-    meta = json.loads((out / "meta.json").read_text())
-    assert meta["n_weights"] == {"xx": 2, "yy": 2} and "validation" in meta
+    fitted = Emulator.load(out)
+    assert fitted.n_weights == {"xx": 2, "yy": 2} and set(fitted.provenance.validation) == {"xx", "yy"}
     for name in ("validation.png", "explained_variance.png", "validation.json", "gp.npz", "pca.npz"):
         assert (out / name).exists()
     res = skinid("surrogate", "validate", "--emulator", out)

@@ -1,10 +1,16 @@
-"""PCA and GP building blocks against independent references (scikit-learn, finite differences)."""
+"""PCA and GP building blocks against independent references (scikit-learn, finite differences);
+the emulator directory on a synthetic emulator."""
+
+import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from sklearn.decomposition import PCA
 
+from surrogate.emulator import Emulator, EmulatorProvenance, HeldOutScores
 from surrogate.gp import GPBank, fit_gps
 from surrogate.pca import StrainPCA
 
@@ -77,3 +83,87 @@ def test_torch_bank_gradients_match_central_differences(fitted_gps, output):
             step[i, j] = h
             numeric[i, j] = (f(x + step) - f(x - step)).item() / (2 * h)
     np.testing.assert_allclose(grad.numpy(), numeric, rtol=0, atol=1e-5 * np.abs(numeric).max())
+
+
+# -- emulator directory (synthetic emulator: no dataset, no FE) -----------------------------------
+PROVENANCE_KEYS = [
+    "dataset", "dataset_config", "mesh_sha256", "block_half_length", "train_materials", "test_materials",
+    "n_training_rows", "n_gp_rows", "gp_fraction", "restarts", "seed", "explained_variance_ratio",
+    "fit_seconds", "versions",
+]
+FORMAT_KEYS = ["format", "format_version", "inputs", "lower", "upper", "components", "n_weights"]
+
+
+@pytest.fixture
+def tiny_emulator(fitted_gps):
+    """One component ("xx", 2 PCs of 40 cells) on the two GPs of ``fitted_gps``."""
+    pca = StrainPCA(n_components=2).fit(low_rank_fields(rank=2))
+    provenance = EmulatorProvenance(
+        dataset=Path("/data/tiny.h5"),
+        dataset_config='name = "tiny"\n\n[mesh]\nlength = 40.0\n',
+        mesh_sha256="0" * 64,
+        block_half_length=20.0,
+        train_materials=(0, 1, 2),
+        test_materials=(3,),
+        n_training_rows=240,
+        n_gp_rows=80,
+        gp_fraction=1 / 3,
+        restarts=1,
+        seed=0,
+        explained_variance_ratio={"xx": tuple(pca.explained_variance_ratio_[:20].tolist())},
+        fit_seconds={"pca": 0.25, "total": 1.5},
+        versions={"skinid": "0.0.0", "numpy": np.__version__},
+    )
+    xy = np.random.default_rng(6).uniform(-20, 20, size=(40, 2))
+    return Emulator(pcas={"xx": pca}, gps=GPBank.from_sklearn(fitted_gps), lower=np.zeros(7), upper=np.ones(7),
+                    xy=xy, volume=np.full(40, 0.5), provenance=provenance)
+
+
+@pytest.mark.parametrize("validated", [False, True], ids=["fitted", "validated"])
+def test_provenance_round_trips_through_save_and_load(tiny_emulator, tmp_path, validated):
+    if validated:
+        scores = {"xx": HeldOutScores(min_r2=0.995, field_rmse=1e-4, field_rmse_relative=0.01)}
+        tiny_emulator.provenance = tiny_emulator.provenance.validated(scores)
+    directory = tiny_emulator.save(tmp_path / "emu")
+    text = (directory / "meta.json").read_text()
+    assert list(json.loads(text)) == PROVENANCE_KEYS + ["validation"] * validated + FORMAT_KEYS
+    loaded = Emulator.load(directory)
+    assert loaded.provenance == tiny_emulator.provenance
+    assert (loaded.save(tmp_path / "again") / "meta.json").read_text() == text
+    np.testing.assert_array_equal(loaded.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0),
+                                  tiny_emulator.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0))
+
+
+def test_emulators_fitted_before_block_half_length_was_recorded_still_load(tiny_emulator, tmp_path):
+    directory = tiny_emulator.save(tmp_path / "emu")
+    meta = json.loads((directory / "meta.json").read_text())
+    del meta["block_half_length"]
+    (directory / "meta.json").write_text(json.dumps(meta))
+    assert Emulator.load(directory).provenance.block_half_length == 20.0  # mesh.length / 2 of its config
+
+
+def _truncate(path):
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _drop_cholesky(path):
+    with np.load(path) as arrays:
+        kept = {k: arrays[k] for k in arrays.files if k != "chol"}
+    np.savez(path, **kept)
+
+
+def _empty(path):
+    path.write_bytes(b"")
+
+
+@pytest.mark.parametrize(
+    "name, damage",
+    [("gp.npz", _truncate), ("pca.npz", _truncate), ("gp.npz", _drop_cholesky), ("gp.npz", _empty)],
+    ids=["truncated-gp", "truncated-pca", "missing-array", "empty-gp"],
+)
+def test_corrupt_array_files_are_one_value_error_naming_the_file(tiny_emulator, tmp_path, name, damage):
+    directory = tiny_emulator.save(tmp_path / "emu")
+    damage(directory / name)
+    with pytest.raises(ValueError, match=re.escape(f"'{directory / name}' is truncated or corrupt")) as info:
+        Emulator.load(directory)
+    assert "\n" not in str(info.value)
