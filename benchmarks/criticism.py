@@ -121,6 +121,7 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
            "rmse_with_true_effect": report["versions"][-1]["metrics"]["rmse"] if add else None,
            "noise_rms": report["versions"][0]["metrics"]["noise_rms"],
            "discretisation_sigma": report["discretisation"]["sigma"],
+           "discretisation_amplitude": report["discretisation"]["amplitude"],
            "failed_runs": len(report["failed_runs"]), "seconds": seconds,
            "fe_runs": t["compare_fe_runs"] + t["diagnose_fe_runs"] + t["add_fe_runs"],
            "fe_runs_continued": t["fe_runs_continued"], "refined_seconds": t["refined_s"],
@@ -151,15 +152,15 @@ def main() -> None:
     comm = MPI.COMM_WORLD
     points = dic_points(18.0, 1.0, np.random.default_rng(0))
     config = data_config(args.data)
-    rows = []
-    for case in args.cases:
-        todo = [] if args.summarise else [s for s in range(args.seeds)
-                                          if not (args.out / f"{case}_{s}" / "row.json").exists()]
-        fields = data_fields(config, case, points, args.mesh_dir, comm) if todo else None
-        for seed in todo:
-            run_case(case, seed, fields, points, args, comm)
-        rows += [json.loads((args.out / f"{case}_{s}" / "row.json").read_text()) for s in range(args.seeds)
-                 if (args.out / f"{case}_{s}" / "row.json").exists()]
+    fields = {}
+    for seed in [] if args.summarise else range(args.seeds):  # seed by seed: a stopped run has every case
+        for case in args.cases:
+            if not (args.out / f"{case}_{seed}" / "row.json").exists():
+                if case not in fields:
+                    fields[case] = data_fields(config, case, points, args.mesh_dir, comm)
+                run_case(case, seed, fields[case], points, args, comm)
+    rows = [json.loads((args.out / f"{case}_{s}" / "row.json").read_text()) for case in args.cases
+            for s in range(args.seeds) if (args.out / f"{case}_{s}" / "row.json").exists()]
     if comm.rank == 0:
         confusion: dict[str, dict[str, int]] = {}
         for row in rows:

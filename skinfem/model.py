@@ -341,8 +341,11 @@ class SkinModel:
         """Newton–LU from the current state ``u0`` when it is far from equilibrium (e.g. another
         mesh's fields): solve R(u) = (1 - s) R(u0) for s rising from 0 (where u0 solves it) to 1
         (equilibrium), a full step first and halved steps after a failure, as the load ramp of
-        :meth:`simulate` does. From u0 = 0 this is the load ramp itself. Returns whether s = 1
-        was reached (the state is then the equilibrium; else undefined)."""
+        :meth:`simulate` does. From u0 = 0 this is the load ramp itself. Newton steps are
+        backtracked here (PETSc's ``bt`` line search): from another mesh's fields a full step can
+        invert cells (a NaN residual after two steps, quadratic check mesh onto its refinement
+        with doubled muscle layers). Returns whether s = 1 was reached (the state is then the
+        equilibrium; else undefined)."""
         x = self.u.x.array
         snes = self.problem.solver
         residual0 = self.problem.b.duplicate()
@@ -350,6 +353,7 @@ class SkinModel:
         snes.computeFunction(self.problem.x, residual0)
         rhs = residual0.duplicate()
         s, step, cutbacks = 0.0, 1.0, 0
+        self._set_snes_option("snes_linesearch_type", "bt")
         try:
             while s < 1.0:
                 s_new = min(1.0, s + step)
@@ -366,6 +370,7 @@ class SkinModel:
                     return False
             return True
         finally:
+            self._set_snes_option("snes_linesearch_type", "basic")
             residual0.destroy()
             rhs.destroy()
 
