@@ -243,8 +243,11 @@ def report_dict(result: CheckResult) -> dict:
         "candidates": [dict(vars(s)) for s in d.scores],
         "versions": [{"label": v.calibration.label, "metrics": dataclasses.asdict(v.metrics),
                       "regions": [dataclasses.asdict(g) for g in v.regions],
-                      "estimates": v.calibration.estimates(), "fe_runs": v.calibration.fe_runs}
+                      "estimates": v.calibration.estimates(), "fe_runs": v.calibration.fe_runs,
+                      "chi2_path": v.calibration.chi2_path}
                      for v in result.versions],
+        "confirmation_fits": {effect: {"fe_runs": fit.fe_runs, "seconds": fit.seconds, "chi2_path": fit.chi2_path}
+                              for effect, fit in d.fits.items()},
         "timings": dataclasses.asdict(result.timings),
         "fe_seconds_per_run": result.fe_seconds_per_run,
     }
