@@ -180,10 +180,7 @@ class FEForward(ForwardModel):
         self.reused = 0  # simulations read from cache_dir instead of run
         self.continuation = Continuation() if continuation else None
         self.continued = 0  # simulations started from a nearby point's states instead of ramped
-        # Newton iterations of a continued solve before the point is ramped instead, and the
-        # first attempt's factorisation (SkinModel.solve_frames)
-        self.continuation_iterations = CONTINUATION_ITERATIONS
-        self.continuation_factorisation = Factorisation.REUSE
+        self.transferred = False  # states come from another mesh (continue_from): solved by Newton–LU
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
@@ -228,8 +225,7 @@ class FEForward(ForwardModel):
 
         start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
         continued = start is not None and model.solve_frames(params, design, start[1], start[0], measure,
-                                                             at_reference, self.continuation_iterations,
-                                                             self.continuation_factorisation)
+                                                             at_reference, *self._continuation_solver())
         if not continued:
             out[:] = 0.0
             states.frames.clear()
@@ -257,8 +253,15 @@ class FEForward(ForwardModel):
                 self.continuation.record(j, transfer(other.continuation.states(j), other.model.V, self.model.V))
 
         collective(self.comm, interpolate)
-        self.continuation_iterations = TRANSFER_ITERATIONS
-        self.continuation_factorisation = Factorisation.EVERY_STEP
+        self.transferred = True
+
+    def _continuation_solver(self) -> tuple[int, Factorisation]:
+        """(Newton iterations, first factorisation) of a continued solve before it is ramped:
+        from another mesh's states Newton–LU with a residual homotopy, else from a nearby
+        point's states GMRES on the previous factorisation (SkinModel.solve_frames)."""
+        if self.transferred:
+            return TRANSFER_ITERATIONS, Factorisation.EVERY_STEP
+        return CONTINUATION_ITERATIONS, Factorisation.REUSE
 
     def _cache_file(self, key: bytes, suffix: str = ".npy") -> Path:
         return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}{suffix}"

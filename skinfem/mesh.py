@@ -158,15 +158,6 @@ def build_mesh(config: Config, path: Path | str) -> MeshInfo:
     """
     import gmsh
 
-    m = config.mesh
-    with_membrane = config.membrane.model == "elastic"
-    coords = inplane_coordinates(m)
-    half, a = m.length / 2, m.membrane_size / 2
-    # split the node coordinates at -a and +a into three segments
-    i_lo = int(np.argmin(np.abs(coords + a)))
-    i_hi = int(np.argmin(np.abs(coords - a)))
-    segments = [coords[: i_lo + 1], coords[i_lo : i_hi + 1], coords[i_hi:]]
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp.msh")  # processes that build the same mesh do not collide
@@ -176,99 +167,107 @@ def build_mesh(config: Config, path: Path | str) -> MeshInfo:
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("skinid-block")
-        geo = gmsh.model.geo
-        # x-lines along y = -L/2 (one per segment), extruded point by point
-        p = geo.addPoint(-half, -half, 0.0)
-        x_lines = []
-        for seg in segments:
-            out = _extrude_layers(gmsh, [(0, p)], seg[-1] - seg[0], 0, 0, np.diff(seg))
-            p = out[0][1]
-            x_lines.append(out[1][1])
-        # rows of surfaces along y
-        surfaces = {}
-        bottom_lines = [(1, t) for t in x_lines]
-        for j, seg in enumerate(segments):
-            out = _extrude_layers(gmsh, bottom_lines, 0, seg[-1] - seg[0], 0, np.diff(seg))
-            # for each extruded line: [top line, surface, lateral lines...]
-            tops, k = [], 0
-            for i in range(3):
-                tops.append(out[k])
-                surfaces[(i, j)] = out[k + 1][1]
-                k += 4
-            bottom_lines = tops
-        top_surfaces = [(2, surfaces[(i, j)]) for j in range(3) for i in range(3)]
-        # skin: downwards from z = 0
-        skin_out = _extrude_layers(
-            gmsh, top_surfaces, 0, 0, -m.skin_thickness, np.full(m.skin_layers, 1.0)
-        )
-        skin_bottoms = [skin_out[6 * k] for k in range(9)]
-        skin_vols = [skin_out[6 * k + 1][1] for k in range(9)]
-        muscle_out = _extrude_layers(
-            gmsh, skin_bottoms, 0, 0, -m.muscle_thickness, np.full(m.muscle_layers, 1.0)
-        )
-        muscle_vols = [muscle_out[6 * k + 1][1] for k in range(9)]
-        membrane_vols = []
-        if with_membrane:
-            mem_out = _extrude_layers(
-                gmsh,
-                [(2, surfaces[(1, 1)])],
-                0,
-                0,
-                m.membrane_thickness,
-                np.full(m.membrane_layers, 1.0),
-            )
-            membrane_vols = [mem_out[1][1]]
-        geo.synchronize()
-
-        tol = 1e-6 * m.length
-        z_bottom = -m.skin_thickness - m.muscle_thickness
-
-        def surfaces_in(xmin, ymin, zmin, xmax, ymax, zmax):
-            found = gmsh.model.getEntitiesInBoundingBox(
-                xmin - tol, ymin - tol, zmin - tol, xmax + tol, ymax + tol, zmax + tol, 2
-            )
-            return [t for _, t in found]
-
-        bottom = surfaces_in(-half, -half, z_bottom, half, half, z_bottom)
-        sides = sorted(
-            set(surfaces_in(-half, -half, z_bottom, -half, half, 0))
-            | set(surfaces_in(half, -half, z_bottom, half, half, 0))
-            | set(surfaces_in(-half, -half, z_bottom, half, -half, 0))
-            | set(surfaces_in(-half, half, z_bottom, half, half, 0))
-        )
-        footprint = [surfaces[(1, 1)]]
-        top = [t for _, t in top_surfaces if t not in footprint]
-        gmsh.model.addPhysicalGroup(3, skin_vols, TAGS["skin"], name="skin")
-        gmsh.model.addPhysicalGroup(3, muscle_vols, TAGS["muscle"], name="muscle")
-        if with_membrane:
-            gmsh.model.addPhysicalGroup(3, membrane_vols, TAGS["membrane"], name="membrane")
-            z_top = m.membrane_thickness
-            membrane_top = surfaces_in(-a, -a, z_top, a, a, z_top)
-            gmsh.model.addPhysicalGroup(2, membrane_top, TAGS["membrane_top"], name="membrane_top")
-        gmsh.model.addPhysicalGroup(2, bottom, TAGS["bottom"], name="bottom")
-        gmsh.model.addPhysicalGroup(2, sides, TAGS["sides"], name="sides")
-        gmsh.model.addPhysicalGroup(2, top, TAGS["top"], name="top")
-        gmsh.model.addPhysicalGroup(2, footprint, TAGS["footprint"], name="footprint")
-
-        gmsh.option.setNumber("Mesh.RecombineAll", 1)
-        gmsh.model.mesh.generate(3)
-        gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
-        gmsh.option.setNumber("Mesh.Binary", 1)
-        gmsh.write(str(tmp))
-        _, tags, _ = gmsh.model.mesh.getElements(3)
-        n_cells = sum(len(t) for t in tags)
-        n_skin = 0
-        for vol in skin_vols:
-            _, tags, _ = gmsh.model.mesh.getElements(3, vol)
-            n_skin += sum(len(t) for t in tags)
-        node_tags, _, _ = gmsh.model.mesh.getNodes()
-        n_nodes = len(node_tags)
+        surfaces = _top_surfaces(gmsh, config.mesh)
+        volumes = _extrude_layers_down(gmsh, config, surfaces)
+        gmsh.model.geo.synchronize()
+        _tag_groups(gmsh, config, surfaces, volumes)
+        n_cells, n_skin, n_nodes = _generate(gmsh, tmp, volumes["skin"])
         gmsh.model.remove()
     finally:
         if initialized_here:
             gmsh.finalize()
     tmp.replace(path)
     return MeshInfo(path, n_cells, n_skin, n_nodes, file_sha256(path))
+
+
+def _top_surfaces(gmsh, m) -> dict[tuple[int, int], int]:
+    """The z = 0 plane as 3 x 3 structured surfaces (i, j) -> tag, split at the membrane's edges
+    x, y = -a, +a; the node coordinates are :func:`inplane_coordinates`."""
+    coords = inplane_coordinates(m)
+    half, a = m.length / 2, m.membrane_size / 2
+    i_lo = int(np.argmin(np.abs(coords + a)))
+    i_hi = int(np.argmin(np.abs(coords - a)))
+    segments = [coords[: i_lo + 1], coords[i_lo : i_hi + 1], coords[i_hi:]]
+    # x-lines along y = -L/2 (one per segment), extruded point by point
+    p = gmsh.model.geo.addPoint(-half, -half, 0.0)
+    x_lines = []
+    for seg in segments:
+        out = _extrude_layers(gmsh, [(0, p)], seg[-1] - seg[0], 0, 0, np.diff(seg))
+        p = out[0][1]
+        x_lines.append(out[1][1])
+    # rows of surfaces along y; for each extruded line: [top line, surface, lateral lines...]
+    surfaces = {}
+    bottom_lines = [(1, t) for t in x_lines]
+    for j, seg in enumerate(segments):
+        out = _extrude_layers(gmsh, bottom_lines, 0, seg[-1] - seg[0], 0, np.diff(seg))
+        bottom_lines = [out[4 * i] for i in range(3)]
+        for i in range(3):
+            surfaces[(i, j)] = out[4 * i + 1][1]
+    return surfaces
+
+
+def _extrude_layers_down(gmsh, config: Config, surfaces: dict[tuple[int, int], int]) -> dict[str, list[int]]:
+    """Skin and muscle volumes extruded down from z = 0, the membrane up from its footprint
+    (the centre surface); returns the volume tags per part."""
+    m = config.mesh
+    top_surfaces = [(2, surfaces[(i, j)]) for j in range(3) for i in range(3)]
+    skin_out = _extrude_layers(gmsh, top_surfaces, 0, 0, -m.skin_thickness, np.full(m.skin_layers, 1.0))
+    skin_bottoms = [skin_out[6 * k] for k in range(9)]
+    muscle_out = _extrude_layers(gmsh, skin_bottoms, 0, 0, -m.muscle_thickness, np.full(m.muscle_layers, 1.0))
+    volumes = {"skin": [skin_out[6 * k + 1][1] for k in range(9)],
+               "muscle": [muscle_out[6 * k + 1][1] for k in range(9)], "membrane": []}
+    if config.membrane.model == "elastic":
+        mem_out = _extrude_layers(gmsh, [(2, surfaces[(1, 1)])], 0, 0, m.membrane_thickness,
+                                  np.full(m.membrane_layers, 1.0))
+        volumes["membrane"] = [mem_out[1][1]]
+    return volumes
+
+
+def _tag_groups(gmsh, config: Config, surfaces: dict[tuple[int, int], int], volumes: dict[str, list[int]]) -> None:
+    """Physical groups (``TAGS``): the three volumes and the boundary surfaces."""
+    m = config.mesh
+    half, a = m.length / 2, m.membrane_size / 2
+    tol = 1e-6 * m.length
+    z_bottom = -m.skin_thickness - m.muscle_thickness
+
+    def surfaces_in(xmin, ymin, zmin, xmax, ymax, zmax):
+        found = gmsh.model.getEntitiesInBoundingBox(xmin - tol, ymin - tol, zmin - tol, xmax + tol, ymax + tol,
+                                                    zmax + tol, 2)
+        return [t for _, t in found]
+
+    bottom = surfaces_in(-half, -half, z_bottom, half, half, z_bottom)
+    sides = sorted(
+        set(surfaces_in(-half, -half, z_bottom, -half, half, 0))
+        | set(surfaces_in(half, -half, z_bottom, half, half, 0))
+        | set(surfaces_in(-half, -half, z_bottom, half, -half, 0))
+        | set(surfaces_in(-half, half, z_bottom, half, half, 0))
+    )
+    footprint = [surfaces[(1, 1)]]
+    top = [surfaces[(i, j)] for j in range(3) for i in range(3) if surfaces[(i, j)] not in footprint]
+    gmsh.model.addPhysicalGroup(3, volumes["skin"], TAGS["skin"], name="skin")
+    gmsh.model.addPhysicalGroup(3, volumes["muscle"], TAGS["muscle"], name="muscle")
+    if volumes["membrane"]:
+        gmsh.model.addPhysicalGroup(3, volumes["membrane"], TAGS["membrane"], name="membrane")
+        z_top = m.membrane_thickness
+        membrane_top = surfaces_in(-a, -a, z_top, a, a, z_top)
+        gmsh.model.addPhysicalGroup(2, membrane_top, TAGS["membrane_top"], name="membrane_top")
+    gmsh.model.addPhysicalGroup(2, bottom, TAGS["bottom"], name="bottom")
+    gmsh.model.addPhysicalGroup(2, sides, TAGS["sides"], name="sides")
+    gmsh.model.addPhysicalGroup(2, top, TAGS["top"], name="top")
+    gmsh.model.addPhysicalGroup(2, footprint, TAGS["footprint"], name="footprint")
+
+
+def _generate(gmsh, tmp: Path, skin_volumes: list[int]) -> tuple[int, int, int]:
+    """Mesh (all hexahedra), write binary .msh 4.1 to ``tmp``; (cells, skin cells, nodes)."""
+    gmsh.option.setNumber("Mesh.RecombineAll", 1)
+    gmsh.model.mesh.generate(3)
+    gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
+    gmsh.option.setNumber("Mesh.Binary", 1)
+    gmsh.write(str(tmp))
+    _, tags, _ = gmsh.model.mesh.getElements(3)
+    n_skin = sum(len(t) for vol in skin_volumes for t in gmsh.model.mesh.getElements(3, vol)[1])
+    node_tags, _, _ = gmsh.model.mesh.getNodes()
+    return sum(len(t) for t in tags), n_skin, len(node_tags)
 
 
 def ensure_mesh(config: Config, directory: Path | str = DEFAULT_MESH_DIR, comm=None) -> Path:

@@ -138,50 +138,76 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     last = len(result.versions) - 1
-    figures = {"baseline": residual_maps(result, 0, out / "residual_baseline.png")}
-    if last:
-        figures["final"] = residual_maps(result, last, out / "residual_final.png")
+    baseline_maps = residual_maps(result, 0, out / "residual_baseline.png")
+    final_maps = residual_maps(result, last, out / "residual_final.png") if last else []
     regions_map(result, 0, out / "regions.png")
     candidates_plot(result, out / "candidates.png")
     error_falls_plot(result, out / "error_falls.png")
-    d, base = result.diagnosis, result.versions[0].metrics
-    lines = ["# Model criticism report", "",
-             f"{len(result.observations)} observation(s), {result.data.n} data values; noise sd "
-             f"{'(estimated, see the verdict) ' if not result.noise_statement.consistent else ''}"
-             f"{', '.join(f'{s:.2g}' for s in result.data.noise.sd)} (xx, yy, xy), correlation length "
-             f"{result.data.noise.length:g} mm, uncorrelated share {result.data.noise.nugget:g}.", "",
-             "## Verdict", "", d.text, "",
-             "## 1. Compare: the calibrated baseline against the measurements", "",
-             f"Calibrated on the FE model (Levenberg–Marquardt from the {result.start_from}; Laplace posterior), "
-             f"measured like the DIC system: {result.gauge_text}.", "",
-             "| metric | value | noise alone |", "|---|---|---|",
-             f"| residual RMSE [log strain] | {_fmt(base.rmse)} | {_fmt(base.noise_rms)} |",
-             f"| χ²/dof (whitened, dof = {base.dof}) | {base.chi2_per_dof:.3f} | 1 ± {np.sqrt(2 / base.dof):.3f} |",
-             f"| posterior-predictive p-value | {base.ppc_p:.3f} | uniform on [0, 1] |",
-             f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} "
-             f"(z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
-             ""]
-    lines += discretisation_lines(result) + failure_lines(result)
-    lines += [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(figures["baseline"])]
-    lines += ["", "## 2. Where the model fails", "",
-              "RMS of (measured − model) / sd over each region's points "
-              "(noise and carried model error alone give 1):", "",
-              "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
-    lines += [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
-    lines += ["", "![regions](regions.png)", "", "## 3. Which effect is missing", "",
-              "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
-              "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
-              "the effect added.", "",
-              "| effect | ΔBIC | share of excess residual | confounding | score T (dof) | p | estimate | explains |",
-              "|---|---|---|---|---|---|---|---|"]
-    for s in d.scores:
+    lines = (compare_lines(result) + discretisation_lines(result) + failure_lines(result)
+             + [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(baseline_maps)]
+             + region_lines(result) + candidate_lines(result) + version_lines(result, final_maps)
+             + cost_lines(result))
+    path = out / "report.md"
+    report_json = json.dumps(report_dict(result), indent=2) + "\n"
+    write_atomically(out / "report.json", lambda tmp: tmp.write_text(report_json))
+    write_atomically(path, lambda tmp: tmp.write_text("\n".join(lines)))  # last: a report.md means a complete report
+    return path
+
+
+def compare_lines(result: CheckResult) -> list[str]:
+    """Title, noise, verdict and section 1's metrics table of the baseline."""
+    base = result.versions[0].metrics
+    return ["# Model criticism report", "",
+            f"{len(result.observations)} observation(s), {result.data.n} data values; noise sd "
+            f"{'(estimated, see the verdict) ' if not result.noise_statement.consistent else ''}"
+            f"{', '.join(f'{s:.2g}' for s in result.data.noise.sd)} (xx, yy, xy), correlation length "
+            f"{result.data.noise.length:g} mm, uncorrelated share {result.data.noise.nugget:g}.", "",
+            "## Verdict", "", result.diagnosis.text, "",
+            "## 1. Compare: the calibrated baseline against the measurements", "",
+            f"Calibrated on the FE model (Levenberg–Marquardt from the {result.start_from}; Laplace posterior), "
+            f"measured like the DIC system: {result.gauge_text}.", "",
+            "| metric | value | noise alone |", "|---|---|---|",
+            f"| residual RMSE [log strain] | {_fmt(base.rmse)} | {_fmt(base.noise_rms)} |",
+            f"| χ²/dof (whitened, dof = {base.dof}) | {base.chi2_per_dof:.3f} | 1 ± {np.sqrt(2 / base.dof):.3f} |",
+            f"| posterior-predictive p-value | {base.ppc_p:.3f} | uniform on [0, 1] |",
+            f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} "
+            f"(z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
+            ""]
+
+
+def region_lines(result: CheckResult) -> list[str]:
+    """Section 2: the regions ranked by their residual."""
+    lines = ["", "## 2. Where the model fails", "",
+             "RMS of (measured − model) / sd over each region's points "
+             "(noise and carried model error alone give 1):", "",
+             "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
+    lines += [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |"
+              for i, g in enumerate(result.diagnosis.regions)]
+    return lines + ["", "![regions](regions.png)"]
+
+
+def candidate_lines(result: CheckResult) -> list[str]:
+    """Section 3: the candidate effects' scores."""
+    lines = ["", "## 3. Which effect is missing", "",
+             "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
+             "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
+             "the effect added.", "",
+             "| effect | ΔBIC | share of excess residual | confounding | score T (dof) | p | estimate | explains |",
+             "|---|---|---|---|---|---|---|---|"]
+    for s in result.diagnosis.scores:
         est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in s.estimate.items())
         lines.append(f"| {s.effect} | {s.delta_bic:+.1f} ({'fit' if s.fitted else 'linearised'}) | "
                      f"{s.share_explained:.0%} | {s.confounding:.0%} | {s.statistic:.1f} ({s.dof}) | {s.p_value:.2g} | "
                      f"{est} | {'**yes**' if s.explains else 'no'} |")
-    lines += ["", "![candidates](candidates.png)", "", "## 4–5. Model versions: the error falls", "",
-              "| version | parameters | RMSE | χ²/dof | PPC p | Moran z | ΔBIC vs baseline | consistent with noise |",
-              "|---|---|---|---|---|---|---|---|"]
+    return lines + ["", "![candidates](candidates.png)"]
+
+
+def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
+    """Sections 4–5: each model version's metrics and estimates, the added effects, the final maps."""
+    base = result.versions[0].metrics
+    lines = ["", "## 4–5. Model versions: the error falls", "",
+             "| version | parameters | RMSE | χ²/dof | PPC p | Moran z | ΔBIC vs baseline | consistent with noise |",
+             "|---|---|---|---|---|---|---|---|"]
     for v in result.versions:
         m = v.metrics
         lines.append(f"| {v.calibration.label} | {m.n_params} | {_fmt(m.rmse)} | {m.chi2_per_dof:.3f} | "
@@ -202,22 +228,22 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     for name in added:
         values = {q.split(".", 1)[1]: float(final.x[final.names.index(q)]) for q in get_effect(name).qualified_names()}
         lines += ["", f"{name} in the final version: {get_effect(name).describe(values)}"]
-    if last:
+    if final_maps:
         lines += ["", f"Final version ({final.label}), residual maps:", ""]
-        lines += [f"![final residual, observation {i}]({p.name})" for i, p in enumerate(figures["final"])]
+        lines += [f"![final residual, observation {i}]({p.name})" for i, p in enumerate(final_maps)]
+    return lines
+
+
+def cost_lines(result: CheckResult) -> list[str]:
+    """The wall time and FE runs of each phase."""
     t = result.timings
-    lines += ["", "## Cost", "",
-              f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
-              f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
-              f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused); "
-              f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
-              f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
-              f"the cache of an earlier run (`fe_runs/`).", ""]
-    path = out / "report.md"
-    report_json = json.dumps(report_dict(result), indent=2) + "\n"
-    write_atomically(out / "report.json", lambda tmp: tmp.write_text(report_json))
-    write_atomically(path, lambda tmp: tmp.write_text("\n".join(lines)))  # last: a report.md means a complete report
-    return path
+    return ["", "## Cost", "",
+            f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
+            f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
+            f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused); "
+            f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
+            f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
+            f"the cache of an earlier run (`fe_runs/`).", ""]
 
 
 def report_dict(result: CheckResult) -> dict:
