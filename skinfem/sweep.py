@@ -32,10 +32,10 @@ from skinfem.io import (
     StrainDataset,
     create_dataset,
     create_dataset_like,
-    write_atomically,
     write_simulation,
 )
 from skinfem.mesh import DEFAULT_MESH_DIR, ensure_mesh
+from skinfem.outputs import check_output, check_writable, release_lock, take_lock, write_atomically
 
 _RESULT_TAG = 71
 
@@ -165,6 +165,7 @@ def run_sweep(
     out: Path | str,
     *,
     resume: bool = False,
+    force: bool = False,
     retry_failed: bool = False,
     shard: tuple[int, int] = (0, 1),
     ranks_per_sim: int = 1,
@@ -174,119 +175,174 @@ def run_sweep(
 ) -> SweepReport | None:
     """Run (the missing part of) a configuration's sweep into the dataset ``out``.
 
-    Collective over ``comm``. Returns the report on rank 0, ``None`` elsewhere.
+    Collective over ``comm``. World rank 0 holds the lock file ``<out>.lock`` while the sweep
+    runs (removed when it ends, also on error). Returns the report on rank 0, ``None`` elsewhere.
+
+    Args:
+        resume: complete an existing ``out`` (of the same configuration and mesh).
+        force: replace an existing ``out`` (when the new file is created, after the mesh and
+            the model are ready).
 
     Raises:
-        ValueError: ``out`` exists without ``resume``, belongs to another configuration or
-            mesh, or ``comm.size`` is not a multiple of ``ranks_per_sim``.
+        ValueError: ``out`` exists without ``resume`` or ``force``, belongs to another
+            configuration or mesh, its folder cannot be written, another sweep holds its lock
+            (or a stale lock is left), or ``comm.size`` is not a multiple of ``ranks_per_sim``.
     """
-    from skinfem.model import ConvergenceError, SkinModel
-    from skinfem.params import Design, SkinParams
-
-    start = time.perf_counter()
     out = Path(out)
-    plan = SweepPlan.from_config(config)
     if ranks_per_sim < 1 or comm.size % ranks_per_sim:
         raise ValueError(
             f"--ranks-per-sim {ranks_per_sim} must divide the number of MPI ranks ({comm.size})"
         )
 
-    def check_out() -> None:
+    def check_name() -> None:
         if out.suffix not in (".h5", ".hdf5"):
             raise ValueError(f"--out must end in .h5, got '{out}'")
-        if out.exists() and not resume:
-            raise ValueError(f"'{out}' exists; add --resume to complete it or choose a new --out")
+        check_writable(out)
 
-    _collective(comm, check_out)
+    _collective(comm, check_name)
+    _collective(comm, lambda: take_lock(out))
+    try:
+        _collective(comm, lambda: check_output(out, force, resume=resume))
+        return _sweep(config, out, force=force, retry_failed=retry_failed, shard=shard,
+                      ranks_per_sim=ranks_per_sim, mesh_dir=mesh_dir, comm=comm, progress=progress)
+    finally:
+        if comm.rank == 0:
+            release_lock(out)
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """One finished simulation of a sweep, as its group root sends it to the writer (rank 0).
+
+    Attributes:
+        i, j: material and design index.
+        strain: (n_frames, n_cells, 3) log strain, None if it failed.
+        status: ``STATUS_OK`` or ``STATUS_FAILED`` (:mod:`skinfem.io`).
+        message: why it failed ("" if not).
+        iterations: Newton iterations of all increments.
+        seconds: wall time of the simulation [s].
+    """
+
+    i: int
+    j: int
+    strain: np.ndarray | None
+    status: int
+    message: str = ""
+    iterations: int = 0
+    seconds: float = 0.0
+
+
+def _simulate(model, plan: SweepPlan, i: int, j: int) -> SimulationResult:
+    """Material i at design j (collective over the model's group; the strain is on its root
+    only); a Newton failure is a failed result, not an error."""
+    from skinfem.model import ConvergenceError
+    from skinfem.params import Design, SkinParams
+
+    try:
+        frames = model.simulate(SkinParams.from_array(plan.params[i]), Design(*plan.designs[j]))
+    except ConvergenceError as exc:
+        return SimulationResult(i, j, None, STATUS_FAILED, str(exc))
+    iterations = sum(frames.newton_iterations)
+    if frames.strain is not None and not np.all(np.isfinite(frames.strain)):  # None off the group root
+        return SimulationResult(i, j, None, STATUS_FAILED, "non-finite strain", iterations, frames.seconds)
+    return SimulationResult(i, j, frames.strain, STATUS_OK, "", iterations, frames.seconds)
+
+
+class _Writer:
+    """World rank 0's side of a sweep: writes every result to ``out`` as it arrives (its own
+    group's and those the other group roots send), with an optional progress bar."""
+
+    def __init__(self, out: Path, comm: MPI.Comm, expected: int, progress: bool):
+        self.out, self.comm, self.expected = out, comm, expected
+        self.results: list[SimulationResult] = []
+        self.bar = None
+        if progress:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=expected, desc=f"sweep {out.name}", unit="sim", file=sys.stderr)
+
+    def record(self, r: SimulationResult) -> None:
+        write_simulation(self.out, r.i, r.j, r.strain, r.status, r.message, r.iterations, r.seconds)
+        self.results.append(r)
+        if self.bar is not None:
+            self.bar.update()
+            if r.status == STATUS_FAILED:
+                self.bar.set_postfix(failed=sum(q.status == STATUS_FAILED for q in self.results))
+
+    def receive(self, wait_for_all: bool) -> None:
+        """Record the other groups' results that have arrived (all that are due if ``wait_for_all``)."""
+        while len(self.results) < self.expected and (
+            wait_for_all or self.comm.iprobe(source=MPI.ANY_SOURCE, tag=_RESULT_TAG)
+        ):
+            self.record(self.comm.recv(source=MPI.ANY_SOURCE, tag=_RESULT_TAG))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _sweep(
+    config: Config,
+    out: Path,
+    *,
+    force: bool,
+    retry_failed: bool,
+    shard: tuple[int, int],
+    ranks_per_sim: int,
+    mesh_dir: Path | str,
+    comm: MPI.Comm,
+    progress: bool,
+) -> SweepReport | None:
+    """The sweep of :func:`run_sweep` once ``out`` is checked and locked."""
+    from skinfem.model import SkinModel
+
+    start = time.perf_counter()
+    plan = SweepPlan.from_config(config)
     ensure_mesh(config, mesh_dir, comm)
     n_groups = comm.size // ranks_per_sim
     group_id = comm.rank // ranks_per_sim
     group = comm.Split(group_id, comm.rank)
     model = SkinModel(config, group, mesh_dir=mesh_dir)
-
-    def prepare_file() -> None:
-        if out.exists():
-            _check_resumable(out, config, model.mesh_sha256, plan)
-            return
-        sampler = model.strain_sampler
-
-        def create(tmp: Path) -> None:
-            create_dataset(
-                tmp,
-                config,
-                plan.params,
-                plan.designs,
-                model.load_fractions(),
-                sampler.xy,
-                sampler.volume,
-                plan.split,
-                model.mesh_sha256,
-                bounds=plan.bounds,
-            )
-
-        write_atomically(out, create)
-
-    _collective(comm, prepare_file)
+    _collective(comm, lambda: _prepare_file(out, config, model, plan, force))
     status = comm.bcast(StrainDataset.open(out).status if comm.rank == 0 else None)
     todo = pending_simulations(status, shard, retry_failed)
-    mine = todo[group_id::n_groups]
-
-    bar = None
-    if comm.rank == 0 and progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(todo), desc=f"sweep {out.name}", unit="sim", file=sys.stderr)
-    results: list[tuple[int, int, int, float]] = []  # rank 0: (i, j, status, seconds) written
+    writer = _Writer(out, comm, len(todo), progress) if comm.rank == 0 else None
     requests: list[MPI.Request] = []
-
-    def record(result: tuple) -> None:
-        i, j, strain, st, message, its, seconds = result
-        if st == STATUS_OK and not np.all(np.isfinite(strain)):
-            strain, st, message = None, STATUS_FAILED, "non-finite strain"
-        write_simulation(out, i, j, strain, st, message, its, seconds)
-        results.append((i, j, st, seconds))
-        if bar is not None:
-            bar.update()
-            if st == STATUS_FAILED:
-                bar.set_postfix(failed=sum(r[2] == STATUS_FAILED for r in results))
-
-    def receive(wait_for_all: bool) -> None:
-        while len(results) < len(todo) and (
-            wait_for_all or comm.iprobe(source=MPI.ANY_SOURCE, tag=_RESULT_TAG)
-        ):
-            record(comm.recv(source=MPI.ANY_SOURCE, tag=_RESULT_TAG))
-
-    for i, j in mine:
-        try:
-            frames = model.simulate(SkinParams.from_array(plan.params[i]), Design(*plan.designs[j]))
-            its = sum(frames.newton_iterations)
-            result = (i, j, frames.strain, STATUS_OK, "", its, frames.seconds)
-        except ConvergenceError as exc:
-            result = (i, j, None, STATUS_FAILED, str(exc), 0, 0.0)
-        if group.rank != 0:
-            continue
-        if comm.rank == 0:
-            record(result)
-            receive(wait_for_all=False)
-        else:
+    for i, j in todo[group_id::n_groups]:
+        result = _simulate(model, plan, i, j)
+        if writer is not None:
+            writer.record(result)
+            writer.receive(wait_for_all=False)
+        elif group.rank == 0:
             requests.append(comm.isend(result, dest=0, tag=_RESULT_TAG))
-    if comm.rank == 0:
-        receive(wait_for_all=True)
+    if writer is not None:
+        writer.receive(wait_for_all=True)
     MPI.Request.waitall(requests)
     comm.barrier()
-    if bar is not None:
-        bar.close()
-    if comm.rank != 0:
+    if writer is None:
         return None
+    writer.close()
+    done = writer.results
     return SweepReport(
         path=out,
-        n_run=len(results),
-        n_failed=sum(r[2] == STATUS_FAILED for r in results),
+        n_run=len(done),
+        n_failed=sum(r.status == STATUS_FAILED for r in done),
         n_total=status.size,
         n_done_before=int(np.count_nonzero(status)),
         wall_seconds=time.perf_counter() - start,
-        sim_seconds=[r[3] for r in results if r[2] == STATUS_OK],
+        sim_seconds=[r.seconds for r in done if r.status == STATUS_OK],
     )
+
+
+def _prepare_file(out: Path, config: Config, model, plan: SweepPlan, force: bool) -> None:
+    """Check an existing ``out`` for resuming, or create the empty dataset (atomically)."""
+    if out.exists() and not force:
+        _check_resumable(out, config, model.mesh_sha256, plan)
+        return
+    sampler = model.strain_sampler
+    write_atomically(out, lambda tmp: create_dataset(
+        tmp, config, plan.params, plan.designs, model.load_fractions(), sampler.xy, sampler.volume, plan.split,
+        model.mesh_sha256, bounds=plan.bounds))
 
 
 def merge_datasets(paths: list[Path | str], out: Path | str) -> StrainDataset:
