@@ -38,7 +38,8 @@ def independent_measurements(small_config, mesh_dir, out, seed, effects=None):
 @pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
 def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_path):
     """No hidden effect: the Q1 check mesh is far from the Q2 data (its error is many noise sd),
-    and the check says so instead of inventing a missing effect."""
+    and the check says so instead of inventing a missing effect: either the residual is
+    consistent with the noise, or its structure is put down to the mesh."""
     files = independent_measurements(small_config, mesh_dir, tmp_path / "m", seed=11)
     res = skinid("check", "--config", "small", "--measurement", *files, "--out", tmp_path / "report",
                  "--noise-length", 2.0, "--noise-nugget", 0.3, "--increments", 2, "--confirm", 1,
@@ -49,5 +50,9 @@ def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_pa
     assert disc["sigma"] > 2 and not disc["resolved"]
     assert "exceeds the noise" in report["verdict"] and "mesh.h_edge <=" in report["verdict"]
     assert not any(c["explains"] for c in report["candidates"])
-    assert "no missing effect is needed" in report["verdict"]
+    # with the correction's amplitude fitted (a = 1.16 here) the residual is no longer read as
+    # understated noise: it stays structured, and the verdict blames the mesh, not physics
+    assert ("no missing effect is needed" in report["verdict"]
+            or "this structure may be the mesh's: rerun on a finer mesh" in report["verdict"])
+    assert "Most likely missing" not in report["verdict"]
     assert report["failed_runs"] == []
