@@ -108,7 +108,8 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     start = time.perf_counter()
     code = skinid(["check", "--config", args.config, "--measurement", *map(str, files), "--out", str(folder / "report"),
                    "--noise-length", "2", "--noise-nugget", "0.3", "--increments", "2", "--confirm", "1",
-                   "--spacing", "2", "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, *given, *add])
+                   "--spacing", "2", "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
+                   *add])
     seconds = time.perf_counter() - start
     if comm.rank or code:
         return {}

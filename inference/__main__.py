@@ -1,4 +1,4 @@
-"""Command line of inference: ``skinid infer``, ``noise``, ``study test-set|setups|noise``, ``check``."""
+"""Command line of inference: ``skinid infer``, ``noise``, ``study``, ``check``, ``measurement``."""
 
 from __future__ import annotations
 
@@ -9,12 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
+from skinfem.cli import CommandParser, add_output, add_renamed_option, refuse
+from skinfem.mesh import DEFAULT_MESH_DIR
+
 
 def _add_sampler(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--chains", type=int, default=4)
-    p.add_argument("--warmup", type=int, default=500)
-    p.add_argument("--draws", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--chains", type=int, default=4, help="NUTS chains")
+    p.add_argument("--warmup", type=int, default=500, help="warm-up (adaptation) steps per chain")
+    p.add_argument("--draws", type=int, default=1000, help="draws per chain after the warm-up")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--jobs", type=int, default=2, help="chains run in parallel (processes)")
     p.add_argument("--gp-variance", choices=["exact", "mode"], default="exact",
                    help="GP variance at every step (exact) or fixed at the mode (fast)")
@@ -26,7 +29,7 @@ def _ints(text: str | None) -> list[int] | None:
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    parser = CommandParser(prog=prog, description=__doc__.splitlines()[0])
     if prog.endswith("infer"):
         parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
         src = parser.add_mutually_exclusive_group(required=True)
@@ -37,7 +40,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         parser.add_argument("--frames", help="with --data: frame indices, e.g. '-1' or '-3,-2,-1' (default: -1)")
         parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
                             help="unknown noise per component, or the measurement's sd columns")
-        parser.add_argument("--out", type=Path, required=True, help="output directory")
+        add_output(parser, "output directory")
         _add_sampler(parser)
         return parser
     if prog.endswith("noise"):
@@ -45,8 +48,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
         parser.add_argument("--level", type=float, required=True,
                             help="amplitude as a fraction of the max |strain| of the training data")
-        parser.add_argument("--seed", type=int, default=0)
-        parser.add_argument("--out", type=Path, required=True, help="noisy dataset (.h5)")
+        parser.add_argument("--seed", type=int, default=0, help="random seed")
+        add_output(parser, "noisy dataset (.h5)")
         return parser
     if prog.endswith("check"):
         parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
@@ -58,28 +61,27 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         start.add_argument("--start", type=float, nargs=5, metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
                            help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
                                 "default: the best of 5 spread points)")
-        parser.add_argument("--out", type=Path, required=True,
-                            help="report directory (its fe_runs/ keeps finished FE runs: rerunning resumes)")
+        add_output(parser, "report directory (its fe_runs/ keeps finished FE runs for --resume)", resumable=True)
         parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
                             help="measurement noise sd per component [strain] (default: the files' sd columns)")
         parser.add_argument("--noise-length", type=float, default=0.0,
-                            help="noise correlation length [mm] (default 0: independent points)")
+                            help="noise correlation length [mm] (0: independent points)")
         parser.add_argument("--noise-nugget", type=float, default=0.0,
-                            help="uncorrelated share of the noise variance in [0, 1] (default 0)")
+                            help="uncorrelated share of the noise variance in [0, 1]")
         parser.add_argument("--dic-window", type=float, default=1.0,
-                            help="the DIC strain window (virtual strain gauge) side [mm] (default 1)")
+                            help="the DIC strain window (virtual strain gauge) side [mm]")
         parser.add_argument("--spacing", type=float, default=1.0,
-                            help="use one measured point per square of this side [mm] (default 1)")
+                            help="use one measured point per square of this side [mm]")
         parser.add_argument("--no-discretisation", action="store_true",
                             help="skip the refined-mesh estimate of the check's discretisation error")
         parser.add_argument("--refine", choices=["uniform", "edge"], default="uniform",
                             help="the estimate's refined mesh: every size halved, or only the membrane-edge "
-                                 "cells (for fine or quadratic meshes); layers doubled in both (default uniform)")
+                                 "cells (for fine or quadratic meshes); layers doubled in both")
         parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
         parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
         parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
         parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
-        parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
+        parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
         return parser
     if prog.endswith("measurement"):
         sub = parser.add_subparsers(dest="action", required=True)
@@ -90,45 +92,45 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                        help="the membrane design (alpha11, alpha22)")
         p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
         p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
-        p.add_argument("--out", type=Path, required=True, help="measurement CSV to write")
-        p.add_argument("--force", action="store_true", help="replace --out if it exists")
+        add_output(p, "measurement CSV to write")
         p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
         p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
         _add_dic_import(p)
         p.add_argument("--alpha", type=float, nargs=2, metavar=("A11", "A22"),
                        help="the membrane design: report the plausibility check on the figure")
-        p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction (default 1)")
-        p.add_argument("--out", type=Path, required=True, help="figure (.png)")
-        p.add_argument("--force", action="store_true", help="replace --out if it exists")
+        p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
+        add_output(p, "figure (.png)")
         return parser
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
-    p.add_argument("--emulator", type=Path, required=True)
-    p.add_argument("--data", type=Path, required=True)
-    p.add_argument("--designs", required=True, help="design indices, e.g. '2'")
-    p.add_argument("--frames", default="-1", help="frame indices (default -1)")
+    p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+    p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
+    p.add_argument("--designs", required=True, help="design indices, e.g. '2' or '7,6,13'")
+    p.add_argument("--frames", default="-1", help="frame indices, e.g. '-1' or '-3,-2,-1'")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
-    p.add_argument("--out", type=Path, required=True)
+    add_output(p, "study directory", resumable=True)
     _add_sampler(p)
     p = sub.add_parser("setups", help="single vs multi-frame vs multi-membrane (the paper's Fig. 8)")
-    p.add_argument("--emulator", type=Path, required=True)
-    p.add_argument("--data", type=Path, required=True)
-    p.add_argument("--design", type=int, required=True, help="the single design")
+    p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+    p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
+    add_renamed_option(p, "--designs", old="--design", type=int, required=True, help="the single design index")
     p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
     p.add_argument("--others", help="the multi-membrane setup's other designs, e.g. '0,13' "
                                     "(default: the n - 1 designs farthest apart in alpha)")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
-    p.add_argument("--out", type=Path, required=True)
+    add_output(p, "study directory", resumable=True)
     _add_sampler(p)
     p = sub.add_parser("noise", help="the paper's 9 noise cases: PCA, GP R², test-set posteriors")
     p.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
-    p.add_argument("--design", type=int, required=True, help="design index observed (last frame)")
-    p.add_argument("--lengths", type=float, nargs="+", default=[0.1, 1.0, 5.0], help="[mm]")
-    p.add_argument("--levels", type=float, nargs="+", default=[0.01, 0.05, 0.10])
+    add_renamed_option(p, "--designs", old="--design", type=int, required=True,
+                       help="design index observed (last frame)")
+    p.add_argument("--lengths", type=float, nargs="+", default=[0.1, 1.0, 5.0], help="noise correlation lengths [mm]")
+    p.add_argument("--levels", type=float, nargs="+", default=[0.01, 0.05, 0.10],
+                   help="noise amplitudes as fractions of the max |strain| of the training data")
     p.add_argument("--materials", help="subset of test materials (default: the test split)")
-    p.add_argument("--gp-fraction", type=float, default=0.1)
-    p.add_argument("--restarts", type=int, default=2)
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
+    p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
+    add_output(p, "study directory", resumable=True)
     _add_sampler(p)
     return parser
 
@@ -137,10 +139,10 @@ def _add_dic_import(p: argparse.ArgumentParser) -> None:
     """Options of ``skinid measurement import|show`` that say how to read a DIC export."""
     from inference.dic_import import FORMATS
 
-    p.add_argument("--format", choices=["auto", *FORMATS], default="auto", help="export format (default: detect)")
+    p.add_argument("--format", choices=["auto", *FORMATS], default="auto", help="export format (auto: detect)")
     p.add_argument("--mm-per-px", type=float, help="image scale [mm/px] (needed for pixel coordinates)")
     p.add_argument("--centre", type=float, nargs=2, default=[0.0, 0.0], metavar=("X", "Y"),
-                   help="membrane centre in the file's coordinates (file units; default 0 0)")
+                   help="membrane centre in the file's coordinates (file units)")
     p.add_argument("--rotation", type=float, default=0.0,
                    help="angle [deg] from the file's x axis to the membrane's x (alpha11) axis, towards file y")
     p.add_argument("--flip-y", action="store_true",
@@ -183,8 +185,10 @@ def cmd_infer(args) -> None:
     from inference.observations import from_dataset, from_measurements
     from inference.studies import posterior_of
     from skinfem.io import StrainDataset
+    from skinfem.outputs import check_output
     from surrogate.emulator import Emulator
 
+    check_output(args.out, args.force, directory=True)
     emulator = Emulator.load(args.emulator)
     if args.data is not None:
         if args.material is None:
@@ -197,38 +201,64 @@ def cmd_infer(args) -> None:
 
 
 def cmd_study(args) -> None:
-    from inference.studies import setups_plot, spread_designs, test_set_study
     from skinfem.io import StrainDataset
+    from skinfem.outputs import check_output, remove_output
     from surrogate.emulator import Emulator
 
-    materials = _ints(args.materials)
+    check_output(args.out, args.force, directory=True, resume=args.resume)
+    data = StrainDataset.open(args.data)
+    emulator = None if args.study == "noise" else Emulator.load(args.emulator)
+    designs = _setups_designs(args, data) if args.study == "setups" else None
+    if args.force:  # the inputs are read and checked: start over
+        remove_output(args.out)
     if args.study == "noise":
-        from inference.studies import noise_study
+        _noise_study(args, data)
+    elif args.study == "test-set":
+        _test_set(args, emulator, data)
+    else:
+        _setups(args, emulator, data, designs)
 
-        data = StrainDataset.open(args.data)
-        noise_study(data, args.out, args.design, settings_of(args), tuple(args.lengths), tuple(args.levels),
-                    materials, {"gp_fraction": args.gp_fraction, "restarts": args.restarts})
-        print(f"wrote {args.out}/README.md")
-        return
-    emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
-    if args.study == "test-set":
-        res = test_set_study(emulator, data, _ints(args.designs), _ints(args.frames), settings_of(args),
-                             args.out, materials)
-        print(json.dumps(res, indent=2))
-        print(f"wrote {args.out}/study.json and accuracy.png")
-        return
-    others = _ints(args.others) if args.others else spread_designs(data.designs, args.design, args.n)[1:]
-    bad = [j for j in [args.design, *others] if not 0 <= j < len(data.designs)]
-    if bad:  # before the single and multi-frame studies run, not after
+
+def _noise_study(args, data) -> None:
+    from inference.studies import noise_study
+
+    noise_study(data, args.out, args.designs, settings_of(args), tuple(args.lengths), tuple(args.levels),
+                _ints(args.materials), {"gp_fraction": args.gp_fraction, "restarts": args.restarts})
+    print(f"wrote {args.out}/README.md")
+
+
+def _test_set(args, emulator, data) -> None:
+    from inference.studies import test_set_study
+
+    res = test_set_study(emulator, data, _ints(args.designs), _ints(args.frames), settings_of(args), args.out,
+                         _ints(args.materials))
+    print(json.dumps(res, indent=2))
+    print(f"wrote {args.out}/study.json and accuracy.png")
+
+
+def _setups_designs(args, data) -> list[int]:
+    """The single design, then the multi-membrane setup's others, checked before any study runs."""
+    from inference.studies import spread_designs
+
+    others = _ints(args.others) if args.others else spread_designs(data.designs, args.designs, args.n)[1:]
+    bad = [j for j in [args.designs, *others] if not 0 <= j < len(data.designs)]
+    if bad:
         raise ValueError(f"design {bad[0]} is not in [0, {len(data.designs)}) of {args.data}")
+    return [args.designs, *others]
+
+
+def _setups(args, emulator, data, designs: list[int]) -> None:
+    from inference.studies import setups_plot, test_set_study
+
+    single = designs[0]
     setups = {
-        "single": ([args.design], [-1]),
-        f"{args.n} frames": ([args.design], list(range(-args.n, 0))),
-        f"{1 + len(others)} membranes": ([args.design, *others], [-1]),
+        "single": ([single], [-1]),
+        f"{args.n} frames": ([single], list(range(-args.n, 0))),
+        f"{len(designs)} membranes": (designs, [-1]),
     }
     results = {
         label: test_set_study(emulator, data, d, f, settings_of(args), args.out / label.replace(" ", "_"),
-                              materials, label)
+                              _ints(args.materials), label)
         for label, (d, f) in setups.items()
     }
     setups_plot(results, args.out / "setups.png")
@@ -239,9 +269,9 @@ def cmd_study(args) -> None:
 def cmd_noise(args) -> None:
     from inference.noise import add_noise
     from skinfem.io import StrainDataset
+    from skinfem.outputs import check_output
 
-    if args.out.exists():
-        raise ValueError(f"'{args.out}' exists; choose a new --out")
+    check_output(args.out, args.force)
     data = StrainDataset.open(args.data)
     add_noise(data, args.out, args.length, args.level, args.seed)
     print(f"added noise (length {args.length} mm, level {args.level:.0%}, seed {args.seed}) to "
@@ -256,8 +286,10 @@ def check_inputs(args):
     from skinfem.config import PARAM_NAMES, config_from_toml, load_config
     from skinfem.dic import StrainGauge
     from skinfem.effects import EFFECTS, effect_parameters
+    from skinfem.outputs import check_output
     from surrogate.emulator import Emulator
 
+    check_output(args.out, args.force, directory=True, resume=args.resume)
     settings = CheckSettings(candidates=args.candidates or list(EFFECTS), add=args.add, increments=args.increments,
                              confirm=args.confirm, gauge=StrainGauge(args.dic_window), spacing=args.spacing,
                              discretisation=not args.no_discretisation, refinement=args.refine)
@@ -296,10 +328,13 @@ def cmd_check(args) -> None:
 
     from inference.criticism.check import run_check
     from inference.criticism.report import write_report
-    from skinfem.parallel import collective
+    from skinfem.outputs import remove_output
+    from skinfem.parallel import collective, on_root
 
     comm = MPI.COMM_WORLD
     settings, config, bounds, emulator, measurements, noise = collective(comm, lambda: check_inputs(args))
+    if args.force:  # the inputs are read and checked: start over, without the old report's FE runs
+        on_root(comm, lambda: remove_output(args.out))
     result = run_check(measurements, noise, settings, config, bounds, emulator, args.mesh_dir, comm,
                        cache_dir=Path(args.out) / "fe_runs")
     if comm.rank == 0:
@@ -364,10 +399,10 @@ def _measurement_show(args, settings) -> None:
 def cmd_measurement(args) -> None:
     from inference.dic_import import assess_plausibility, save_measurement
     from inference.observations import MeasurementError
+    from skinfem.outputs import check_output
 
+    check_output(args.out, args.force)
     settings = dic_settings(args)
-    if args.out.exists() and not args.force:
-        raise ValueError(f"'{args.out}' exists; use --force to replace it")
     if args.action == "show":
         _measurement_show(args, settings)
         return
@@ -398,13 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         COMMANDS[command](args)
     except CollectiveError as exc:  # raised on every rank: rank 0 says it once
-        if _rank() == 0:
-            print(f"skinid {command}: error: {exc}", file=sys.stderr)
-        return 2
+        return refuse(f"skinid {command}", exc, show=_rank() == 0)
     except (MeasurementError, ValueError, FileNotFoundError) as exc:
-        print(f"skinid {command}: error: {exc}", file=sys.stderr)
-        _abort_other_ranks(2)
-        return 2
+        code = refuse(f"skinid {command}", exc)
+        _abort_other_ranks(code)
+        return code
     return 0
 
 

@@ -33,7 +33,7 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
-from skinfem.io import write_atomically
+from skinfem.outputs import write_atomically
 
 FORMATS = ("vic", "vic9", "davis8", "davis10", "dice", "table")
 LENGTH_UNITS = {"mm": 1.0, "m": 1000.0, "cm": 10.0, "µm": 1e-3, "μm": 1e-3, "um": 1e-3}

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from skinfem.io import STATUS_OK, StrainDataset, create_dataset_like, write_atomically, write_simulation
+from skinfem.io import STATUS_OK, StrainDataset, create_dataset_like, write_simulation
+from skinfem.outputs import write_atomically
 
 
 def correlation_matrix(xy: np.ndarray, length: float, nugget: float = 0.0) -> np.ndarray:

@@ -1,10 +1,12 @@
-"""Figures of the inference package (matplotlib, written to PNG)."""
+"""Figures of the inference package (matplotlib, written to PNG under a temporary name, then renamed)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+
+from skinfem.outputs import save_figure
 
 LABELS = {
     "mu": "μ [MPa]",
@@ -23,14 +25,6 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def save_figure(fig, path: Path | str, dpi: int = 110) -> Path:
-    """Lay out, write (PNG) and close a figure."""
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    pyplot().close(fig)
-    return Path(path)
 
 
 def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:

@@ -36,6 +36,7 @@ import torch
 
 from inference.model import ObservedFields, SkinPosterior, prior_draws
 from skinfem.config import PARAM_NAMES
+from skinfem.outputs import write_atomically
 from surrogate.emulator import COMPONENTS
 
 RHAT_LIMIT, ESS_LIMIT = 1.01, 400
@@ -471,13 +472,17 @@ def sample_posterior(
 
 
 def write_outputs(samples: PosteriorSamples, out: Path | str, extra: dict | None = None) -> dict:
-    """posterior.nc, summary.json and corner.png into ``out``; returns the summary."""
+    """posterior.nc, summary.json and corner.png into the folder ``out`` (written under a
+    temporary name and renamed, so a folder with a summary.json is complete); returns the summary."""
     from inference.plots import corner_plot
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    samples.inference_data().to_netcdf(out / "posterior.nc")
     summary = {**samples.summary(), **(extra or {})}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    corner_plot(samples, out / "corner.png")
+
+    def write(tmp: Path) -> None:
+        tmp.mkdir()
+        samples.inference_data().to_netcdf(tmp / "posterior.nc")
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        corner_plot(samples, tmp / "corner.png")
+
+    write_atomically(out, write)
     return summary

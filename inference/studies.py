@@ -17,6 +17,7 @@ from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, accuracy_plot, pyplot, save_figure
 from inference.sampling import sample_posterior, write_outputs
 from skinfem.io import StrainDataset
+from skinfem.outputs import write_text
 from surrogate.emulator import Emulator
 
 
@@ -88,7 +89,7 @@ def test_set_study(
         "identified": identified,
         "max_r_hat": float(max(r[n]["r_hat"] for r in rows for n in names)),
     }
-    (out / "study.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_text(out / "study.json", json.dumps(result, indent=2) + "\n")
     return result
 
 
@@ -200,7 +201,7 @@ def noise_study(
             "r2_per_pc": {c: r["r2_per_pc"] for c, r in report["components"].items()},
             "study": study,
         }
-    (out / "noise_study.json").write_text(json.dumps(results, indent=2) + "\n")
+    write_text(out / "noise_study.json", json.dumps(results, indent=2) + "\n")
     explained_variance_plot(results, out / "explained_variance.png")
     sensitivity_maps(out, ["clean", case_name(lengths[min(1, len(lengths) - 1)], levels[0])], design,
                      data.designs[design], out / "sensitivity.png")
@@ -289,6 +290,4 @@ def write_noise_report(results: dict, out: Path) -> Path:
               "Paper (noise): " + PAPER_FINDINGS["noise"] + ".", "",
               "Accuracy plots: `cases/<case>/posteriors/accuracy.png`. Sensitivity of the PC weights over (μ, k₁):",
               "", "![sensitivity](sensitivity.png)", ""]
-    path = out / "README.md"
-    path.write_text("\n".join(lines))
-    return path
+    return write_text(out / "README.md", "\n".join(lines))

@@ -50,9 +50,8 @@ print(f"{model.n_dofs} dofs, {len(model.strain_sampler.xy)} observed skin cells,
 # %%
 params = SkinParams(mu=0.0012, k1=0.017, k2=11.0, kappa=0.285, theta=30.0)
 design = Design(0.05, -0.05)
-writer = FieldWriter(model, out / "mixed.xdmf")
-frames = model.simulate(params, design, on_frame=writer.write)
-writer.close()
+with FieldWriter(model, out / "mixed.xdmf") as writer:  # mixed.xdmf + mixed.h5, in place when complete
+    frames = model.simulate(params, design, on_frame=writer.write)
 print(f"{len(frames.t)} frames in {frames.seconds:.1f} s; Newton iterations {frames.newton_iterations}")
 
 # %% [markdown]

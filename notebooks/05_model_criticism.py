@@ -78,7 +78,7 @@ mpirun = shutil.which("mpirun", path=str(Path(sys.executable).parent))
 cmd = skinid + ["check", "--emulator", str(emulator_dir), "--measurement", *map(str, files),
                 "--out", str(out / "report"), "--noise-length", "2", "--noise-nugget", "0.3",
                 "--add", "pre_stretch", "--increments", "2", "--confirm", "1", "--mesh-dir", str(mesh_dir),
-                "--spacing", "2", "--no-discretisation"]
+                "--spacing", "2", "--no-discretisation", "--force"]  # --force: rerunning replaces the report
 run = subprocess.run(([mpirun, "-n", "2"] if mpirun else []) + cmd, capture_output=True, text=True)
 print(run.stdout[-3000:] or run.stderr[-3000:])
 run.check_returncode()

@@ -73,8 +73,8 @@ def main() -> None:
         run(*cmd)
 
     step("2/5 surrogate: PCA + GPs, validated on the 4 held-out materials")
-    if not (emu / "validation.json").exists():
-        run("surrogate", "fit", "--data", str(data), "--out", str(emu), "--gp-fraction", "0.5")
+    if not (emu / "validation.json").exists():  # --force: replace an incomplete folder of an earlier run
+        run("surrogate", "fit", "--data", str(data), "--out", str(emu), "--gp-fraction", "0.5", "--force")
 
     from inference.plots import strain_maps
     from skinfem.io import StrainDataset
@@ -87,7 +87,7 @@ def main() -> None:
     step(f"3/5 posterior of held-out material {material} from the mixed design (0.05, -0.05)")
     if not (post / "summary.json").exists():
         run("infer", "--emulator", str(emu), "--data", str(data), "--material", str(material),
-            "--designs", str(mixed), "--out", str(post), "--gp-variance", "mode")
+            "--designs", str(mixed), "--out", str(post), "--gp-variance", "mode", "--force")
     summary = json.loads((post / "summary.json").read_text())
 
     truth = dataset.params[material]
@@ -107,6 +107,7 @@ def main() -> None:
         cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
                "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2",
                "--spacing", "2", "--no-discretisation"]  # data from the checked mesh: its model is exact
+        cmd += ["--resume"] if check.exists() else []  # a killed check: reuse its finished FE runs
         if mpirun.exists():
             subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *cmd], check=True)
         else:

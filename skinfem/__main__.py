@@ -1,7 +1,8 @@
 """Command line of skinfem: ``skinid mesh|simulate|sweep|merge|info`` (also ``python -m skinfem``).
 
 ``mesh``, ``simulate`` and ``sweep`` run under ``mpirun -n k``. Errors in the input are reported as one
-line on stderr with a non-zero exit status; nothing is half-written.
+line on stderr with exit status 2; an existing output is not replaced without ``--force``, and
+nothing is half-written (:mod:`skinfem.outputs`).
 """
 
 from __future__ import annotations
@@ -12,57 +13,47 @@ from pathlib import Path
 
 import numpy as np
 
+from skinfem.cli import CommandParser, add_output, refuse
 from skinfem.config import PARAM_NAMES, ConfigError, load_config
 from skinfem.mesh import DEFAULT_MESH_DIR
 
 
 def _add_config(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--config",
-        default="small",
-        help="TOML file or built-in preset (small, study, paper); default: small",
-    )
-    parser.add_argument(
-        "--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory (default: meshes/)"
-    )
+    parser.add_argument("--config", default="small", help="TOML file or built-in preset (small, study, paper)")
+    parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="skinid", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="skinid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("mesh", help="generate the gmsh mesh of a configuration")
     _add_config(p)
-    p.add_argument("--force", action="store_true", help="regenerate even if the file exists")
+    p.add_argument("--force", action="store_true", help="regenerate the mesh file if it exists")
 
     p = sub.add_parser("simulate", help="run one simulation and write a one-entry dataset")
     _add_config(p)
     units = {"mu": "MPa", "k1": "MPa", "k2": "-", "kappa": "-", "theta": "deg"}
     for name in PARAM_NAMES:
         p.add_argument(f"--{name}", type=float, required=True, help=f"skin {name} [{units[name]}]")
-    p.add_argument("--alpha11", type=float, required=True, help="membrane eigen-strain along x")
-    p.add_argument("--alpha22", type=float, required=True, help="membrane eigen-strain along y")
-    p.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
-    p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf)")
-    p.add_argument("--force", action="store_true", help="replace --out if it exists")
+    p.add_argument("--alpha", type=float, nargs=2, required=True, metavar=("A11", "A22"),
+                   help="the membrane design: eigen-strains along x and y")
+    add_output(p, "output dataset (.h5)", replaces="--out and --fields")
+    p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf and its .h5; not the --out name)")
 
     p = sub.add_parser("sweep", help="Latin hypercube x designs -> dataset (.h5), resumable")
     _add_config(p)
-    p.add_argument("--out", type=Path, required=True, help="output dataset (.h5)")
-    p.add_argument("--resume", action="store_true", help="complete an interrupted sweep")
+    add_output(p, "output dataset (.h5)", resumable=True)
     p.add_argument(
         "--retry-failed", action="store_true", help="with --resume: rerun failed simulations"
     )
     p.add_argument("--shard", default="0/1", help="run shard i of n (0 <= i < n), e.g. 3/16")
-    p.add_argument(
-        "--ranks-per-sim", type=int, default=1, help="MPI ranks per simulation (default 1)"
-    )
+    p.add_argument("--ranks-per-sim", type=int, default=1, help="MPI ranks per simulation")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = sub.add_parser("merge", help="join the shard files of one sweep")
     p.add_argument("shards", type=Path, nargs="+", help="shard datasets (.h5)")
-    p.add_argument("--out", type=Path, required=True, help="merged dataset (.h5)")
-    p.add_argument("--force", action="store_true", help="replace --out if it exists")
+    add_output(p, "merged dataset (.h5)")
 
     p = sub.add_parser("info", help="summary of a dataset")
     p.add_argument("data", type=Path, help="dataset (.h5)")
@@ -71,12 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cmd_mesh(args, comm) -> int:
     from skinfem.mesh import build_mesh, mesh_path
+    from skinfem.outputs import check_writable
 
     config = load_config(args.config)
     path = mesh_path(config, args.mesh_dir)
     if comm.rank == 0:
         if args.force or not path.exists():
-            info = build_mesh(config, path)
+            info = build_mesh(config, check_writable(path))
             print(
                 f"wrote {info.path}: {info.n_cells} hexahedra ({info.n_skin_cells} in the skin), "
                 f"{info.n_nodes} nodes"
@@ -86,31 +78,38 @@ def cmd_mesh(args, comm) -> int:
     return 0
 
 
+def check_simulate_outputs(args) -> None:
+    """``--out`` and the two ``--fields`` files: new (or ``--force``), writable, not the same file."""
+    from skinfem.io import field_files
+    from skinfem.outputs import check_output
+
+    if args.out.suffix not in (".h5", ".hdf5"):
+        raise ValueError(f"--out must end in .h5, got '{args.out}'")
+    check_output(args.out, args.force)
+    if args.fields is None:
+        return
+    for path in field_files(args.fields):
+        if path.resolve() == args.out.resolve():
+            raise ValueError(f"--fields {args.fields} writes its data to {path}, the --out file; "
+                             "give --fields another name")
+        check_output(path, args.force)
+
+
 def cmd_simulate(args, comm) -> int:
-    from skinfem.io import (
-        STATUS_OK,
-        FieldWriter,
-        check_output,
-        create_dataset,
-        write_atomically,
-        write_simulation,
-    )
+    from contextlib import nullcontext
+
+    from skinfem.io import STATUS_OK, FieldWriter, create_dataset, write_simulation
     from skinfem.model import SkinModel
+    from skinfem.outputs import write_atomically
     from skinfem.params import Design, SkinParams
 
     config = load_config(args.config)
     params = SkinParams(*(getattr(args, n) for n in PARAM_NAMES))
-    design = Design(args.alpha11, args.alpha22)
-    if args.out.suffix not in (".h5", ".hdf5"):
-        raise ValueError(f"--out must end in .h5, got '{args.out}'")
-    check_output(args.out, args.force)
+    design = Design(*args.alpha)
+    check_simulate_outputs(args)
     model = SkinModel(config, comm, mesh_dir=args.mesh_dir)
-    writer = FieldWriter(model, args.fields) if args.fields else None
-    try:
+    with FieldWriter(model, args.fields) if args.fields else nullcontext() as writer:
         frames = model.simulate(params, design, on_frame=writer.write if writer else None)
-    finally:
-        if writer:
-            writer.close()
     if comm.rank != 0:
         return 0
 
@@ -157,6 +156,7 @@ def cmd_sweep(args, comm) -> int:
         mesh_dir=args.mesh_dir,
         comm=comm,
         progress=not args.quiet,
+        force=args.force,
     )
     if report is not None:
         print(report)
@@ -164,7 +164,7 @@ def cmd_sweep(args, comm) -> int:
 
 
 def cmd_merge(args, comm) -> int:
-    from skinfem.io import check_output
+    from skinfem.outputs import check_output
     from skinfem.sweep import merge_datasets
 
     check_output(args.out, args.force)
@@ -200,9 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return COMMANDS[args.command](args, comm)
     except (ConfigError, ValueError, FileNotFoundError, RuntimeError) as exc:
-        if comm.rank == 0:
-            print(f"skinid {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return refuse(f"skinid {args.command}", exc, show=comm.rank == 0)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ which every simulation with ``status != 0`` is complete.
 from __future__ import annotations
 
 import json
-import os
+import sys
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import metadata
@@ -34,6 +34,8 @@ import h5py
 import numpy as np
 
 from skinfem.config import PARAM_NAMES, PARAM_UNITS, Config, config_from_toml
+from skinfem.outputs import remove_output
+from skinfem.outputs import write_atomically as write_atomically  # re-exported: its home before skinfem.outputs
 
 STATUS_NOT_RUN, STATUS_OK, STATUS_FAILED = 0, 1, -1
 FORMAT_VERSION = 1
@@ -48,12 +50,11 @@ def package_versions() -> dict[str, str]:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             continue
-    try:
-        from skinfem.fenics import dolfinx
-
+    # conda and apt installs of DOLFINx have no pip metadata: its module's version, if this process
+    # loaded it (importing it only to read the version would start PETSc for nothing)
+    dolfinx = sys.modules.get("dolfinx")
+    if dolfinx is not None:
         versions.setdefault("dolfinx", dolfinx.__version__)
-    except ImportError:
-        pass
     return versions
 
 
@@ -68,6 +69,7 @@ def create_dataset(
     split: np.ndarray,
     mesh_sha256: str,
     bounds: np.ndarray | None = None,
+    versions: dict[str, str] | None = None,
 ) -> None:
     """Create an empty dataset (every simulation 'not run') with all metadata.
 
@@ -78,6 +80,8 @@ def create_dataset(
         xy, volume: (n_cells, 2) centroids [mm] and (n_cells,) volumes [mm^3].
         split: (n_mat,) 0 train / 1 test.
         bounds: (5, 2) parameter box of the design (default: min/max of ``params``).
+        versions: the packages that made the simulations (default: this process's,
+            :func:`package_versions`).
     """
     params = np.asarray(params, dtype=float)
     bounds = np.stack([params.min(0), params.max(0)], 1) if bounds is None else np.asarray(bounds)
@@ -86,7 +90,7 @@ def create_dataset(
         f.attrs["format"] = "skinid-dataset"
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["config"] = config.to_toml()
-        f.attrs["versions"] = json.dumps(package_versions())
+        f.attrs["versions"] = json.dumps(package_versions() if versions is None else versions)
         f.attrs["mesh_sha256"] = mesh_sha256
         f.attrs["created"] = datetime.now(UTC).isoformat(timespec="seconds")
         f.attrs["seed"] = config.sweep.seed
@@ -114,7 +118,8 @@ def create_dataset(
 
 
 def create_dataset_like(path: Path | str, data: StrainDataset) -> None:
-    """Create an empty dataset with the metadata (config, design, cells, split, mesh) of ``data``."""
+    """Create an empty dataset with the metadata (config, design, cells, split, mesh, the versions
+    that made its simulations) of ``data``."""
     create_dataset(
         path,
         data.config,
@@ -126,6 +131,7 @@ def create_dataset_like(path: Path | str, data: StrainDataset) -> None:
         data.split,
         data.mesh_sha256,
         bounds=np.stack([data.lower, data.upper], 1),
+        versions=data.versions,
     )
 
 
@@ -305,42 +311,19 @@ def dataset_summary(data: StrainDataset) -> str:
     return "\n".join(lines)
 
 
-def check_output(path: Path | str, force: bool = False) -> Path:
-    """Refuse an output before any computing: it exists (and ``force`` is not given), is a
-    directory, or its folder cannot be written.
-
-    Raises:
-        ValueError: with one line saying which and what to do.
-    """
+def field_files(path: Path | str) -> tuple[Path, Path]:
+    """The two files of a ParaView output named ``path``: the .xdmf and the .h5 it refers to."""
     path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"--out '{path}' is a directory; give a file name")
-    if path.exists() and not force:
-        raise ValueError(f"--out '{path}' exists; an output is never replaced silently: give --force to replace it")
-    folder = next(p for p in (path.parent, *path.parent.parents) if p.exists())
-    if not folder.is_dir():
-        raise ValueError(f"cannot write --out '{path}': '{folder}' is a file, not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"cannot write --out '{path}': '{folder}' is not writable")
-    return path
-
-
-def write_atomically(path: Path | str, write) -> Path:
-    """Call ``write(tmp_path)`` and move the result to ``path`` only if it succeeded."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        write(tmp)
-        tmp.replace(path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return path.with_suffix(".xdmf"), path.with_suffix(".h5")
 
 
 class FieldWriter:
     """ParaView output (XDMF + HDF5): displacement and cell-wise log strain per frame.
+
+    The pair is written into a hidden folder next to ``path`` and moved into place (the .xdmf
+    last) when it is closed with ``keep=True``, so that a failed or killed simulation leaves no
+    half-written fields under the given name. As a context manager it keeps the files if the
+    block ends normally and discards them otherwise.
 
     Collective: create and call on all ranks of the model's communicator.
     """
@@ -351,9 +334,10 @@ class FieldWriter:
 
         mesh = model.mesh
         self.model = model
-        self.path = Path(path).with_suffix(".xdmf")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.file = dolfinx.io.XDMFFile(mesh.comm, str(self.path), "w")
+        self.path, _ = field_files(path)
+        self._partial = self.path.with_name(f".{self.path.stem}.partial")
+        self._partial.mkdir(parents=True, exist_ok=True)
+        self.file = dolfinx.io.XDMFFile(mesh.comm, str(self._partial / self.path.name), "w")
         self.file.write_mesh(mesh)
         self.file.write_meshtags(model.cell_tags, mesh.geometry)
         V1 = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
@@ -363,6 +347,12 @@ class FieldWriter:
         n_owned = mesh.topology.index_map(mesh.topology.dim).size_local
         self._cells = np.arange(n_owned, dtype=np.int32)
         self._sampler = SkinStrainSampler(model.u, self._cells, model.config.solver.quadrature_degree)
+
+    def __enter__(self) -> FieldWriter:
+        return self
+
+    def __exit__(self, kind, exc, traceback) -> None:
+        self.close(keep=kind is None)
 
     def write(self, t: float) -> None:
         self.u1.interpolate(self.model.u)
@@ -374,5 +364,14 @@ class FieldWriter:
         self.file.write_function(self.u1, t)
         self.file.write_function(self.strain, t)
 
-    def close(self) -> None:
+    def close(self, keep: bool = True) -> None:
+        """Close the files; move them into place if ``keep``, else delete them."""
         self.file.close()
+        comm = self.model.mesh.comm
+        comm.barrier()
+        if comm.rank == 0:
+            if keep:
+                for name in reversed(field_files(self.path)):  # the .h5 first: an .xdmf means a complete pair
+                    (self._partial / name.name).replace(name)
+            remove_output(self._partial)
+        comm.barrier()

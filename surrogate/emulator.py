@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from skinfem.io import STATUS_OK, StrainDataset
+from skinfem.outputs import write_text
 from surrogate.gp import GPBank, fit_gps
 from surrogate.pca import StrainPCA
 
@@ -283,7 +284,8 @@ class Emulator:
         return directory
 
     def save_meta(self, directory: Path) -> None:
-        """(Re)write ``meta.json`` of an emulator directory: format entries + provenance."""
+        """(Re)write ``meta.json`` of an emulator directory (atomically; written last by :meth:`save`,
+        so a directory with a ``meta.json`` is complete): format entries + provenance."""
         meta = {
             **self.provenance.to_json(),
             "format": FORMAT,
@@ -294,7 +296,7 @@ class Emulator:
             "components": list(self.components),
             "n_weights": self.n_weights,
         }
-        (directory / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+        write_text(directory / "meta.json", json.dumps(meta, indent=2) + "\n")
 
     @classmethod
     def load(cls, directory: Path | str, device: str = "cpu") -> Emulator:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from skinfem.io import StrainDataset
+from skinfem.outputs import save_figure, write_text
 from surrogate.emulator import Emulator, HeldOutScores, TrainingRows
 
 
@@ -93,10 +94,7 @@ def plot_predicted_vs_true(emulator: Emulator, arrays: dict, path: Path | str) -
             if r == len(slices) - 1:
                 ax.set_xlabel("simulated weight [-]", fontsize=8)
     fig.suptitle("PC weights of held-out materials: emulator vs finite elements", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=130)
 
 
 def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 20) -> Path:
@@ -118,10 +116,7 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
     ax.set_ylim(top=1.0)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, dpi=130)
 
 
 def held_out_scores(report: dict) -> dict[str, HeldOutScores]:
@@ -138,7 +133,7 @@ def validate_directory(directory: Path | str, data_path: Path | str | None = Non
     emulator = Emulator.load(directory)
     data = StrainDataset.open(data_path or emulator.provenance.dataset)
     report, arrays = validate(emulator, data)
-    (directory / "validation.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_text(directory / "validation.json", json.dumps(report, indent=2) + "\n")
     plot_predicted_vs_true(emulator, arrays, directory / "validation.png")
     emulator.provenance = emulator.provenance.validated(held_out_scores(report))
     emulator.save_meta(directory)

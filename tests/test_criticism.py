@@ -205,7 +205,7 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     assert "Most likely missing: pre_stretch" in res.stdout
 
     # a rerun (as after a kill) reads every FE run from report/fe_runs and reaches the same result
-    res = skinid(*command, ranks=2)
+    res = skinid(*command, "--resume", ranks=2)
     assert res.returncode == 0, res.stderr[-3000:]
     again = json.loads((tmp_path / "report" / "report.json").read_text())
     t = again["timings"]

@@ -385,7 +385,8 @@ def test_cli_refuses_to_overwrite_without_force(capsys, tmp_path):
     assert cli(capsys, *args)[0] == 0
     out.write_text("keep me")
     code, _, err = cli(capsys, *args)
-    assert code == 2 and "exists; use --force" in err and len(err.strip().splitlines()) == 1
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert f"error: {out} exists; pass --force to replace it" in err
     assert out.read_text() == "keep me"
     assert cli(capsys, *args, "--force")[0] == 0 and read_measurement(out).xy.shape == (63, 2)
 

@@ -67,7 +67,9 @@ def test_cli_fit_and_validate(small_dataset, tmp_path):
     assert fitted.n_weights == {"xx": 2, "yy": 2} and set(fitted.provenance.validation) == {"xx", "yy"}
     for name in ("validation.png", "explained_variance.png", "validation.json", "gp.npz", "pca.npz"):
         assert (out / name).exists()
-    res = skinid("surrogate", "validate", "--emulator", out)
+    res = skinid("surrogate", "validate", "--emulator", out)  # fit validated it: replacing needs --force
+    assert res.returncode == 2 and "validation.json exists; pass --force" in res.stderr
+    res = skinid("surrogate", "validate", "--emulator", out, "--force")
     assert res.returncode == 0 and "E_yy" in res.stdout
 
 

@@ -129,10 +129,16 @@ def test_killed_sweep_resumes_to_the_same_file(reference, tiny_toml, mesh_dir, t
     ok = killed.status == STATUS_OK
     assert np.all(np.isfinite(killed.strain()[ok]))
 
-    res = skinid("sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", out, "--resume", "--quiet")
+    resume = ("sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", out, "--resume", "--quiet")
+    res = skinid(*resume)  # the killed sweep could not remove its lock: it is named, with its removal
+    lock = out.with_name("killed.h5.lock")
+    assert res.returncode == 2 and f"stale lock {lock}" in res.stderr and f"rm '{lock}'" in res.stderr
+    lock.unlink()
+    res = skinid(*resume)
     assert res.returncode == 0, res.stderr
     assert f"{np.count_nonzero(killed.status)} were already done" in res.stdout
     assert_same_dataset(out, reference)
+    assert not lock.exists()
 
 
 def test_existing_output_needs_resume_and_the_same_config(reference, tiny_toml, mesh_dir, tmp_path):
