@@ -35,7 +35,6 @@ import numpy as np
 
 from skinfem.config import PARAM_NAMES, PARAM_UNITS, Config, config_from_toml
 from skinfem.outputs import remove_output
-from skinfem.outputs import write_atomically as write_atomically  # re-exported: its home before skinfem.outputs
 
 STATUS_NOT_RUN, STATUS_OK, STATUS_FAILED = 0, 1, -1
 FORMAT_VERSION = 1

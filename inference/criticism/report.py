@@ -11,7 +11,7 @@ import numpy as np
 from inference.criticism.check import CheckResult
 from inference.plots import field_grid, pyplot, save_figure
 from skinfem.effects import EFFECTS, get_effect
-from skinfem.io import write_atomically
+from skinfem.outputs import write_text
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
 
@@ -148,9 +148,8 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
              + region_lines(result) + candidate_lines(result) + version_lines(result, final_maps)
              + cost_lines(result))
     path = out / "report.md"
-    report_json = json.dumps(report_dict(result), indent=2) + "\n"
-    write_atomically(out / "report.json", lambda tmp: tmp.write_text(report_json))
-    write_atomically(path, lambda tmp: tmp.write_text("\n".join(lines)))  # last: a report.md means a complete report
+    write_text(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
+    write_text(path, "\n".join(lines))  # last: a report.md means a complete report
     return path
 
 
