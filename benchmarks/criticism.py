@@ -12,9 +12,13 @@ cells at the membrane edge, finer than the quadratic check mesh
 kappa 0.285, theta 30 deg), two membranes ((0.05, 0.05), (0.05, -0.05)), measured like DIC
 (1 mm strain window) at a jittered 1 mm point cloud with three holes over +-18 mm, plus
 correlated noise (sd 1e-3, 2 mm, 30 % uncorrelated), one noise draw per seed. Cases: no hidden
-effect, or one hidden effect (pre-stretch 1.08 x 1.02 at 30 deg, muscle 2x stiffer, skin 1.5x
-thicker). Each (case, seed) is one ``skinid check`` with the discretisation estimate and the
-true effect added as a version (``--add``), so that the RMSE after adding it is measured too.
+effect, one hidden effect (pre-stretch 1.08 x 1.02 at 30 deg, muscle 2x stiffer, skin 1.5x
+thicker), two at once (``two_effects``: the pre-stretch and the stiffer muscle), or a defect
+outside the registry (``inclusion``: skin 8x stiffer in a 3.5 mm disc at (-13, 4) mm). Each
+(case, seed) is one ``skinid check`` with the discretisation estimate and the true effect added
+as a version (``--add``), so that the RMSE after adding it is measured too; two effects take
+successive rounds (the first check's named effect added in a second check, whose next round
+should name the other).
 
 Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``; a rerun skips them,
 and ``--summarise`` tabulates the finished ones without running more.
@@ -39,15 +43,34 @@ DESIGNS = [(0.05, 0.05), (0.05, -0.05)]
 NOISE = dict(sd=np.full(3, 1e-3), length=2.0, nugget=0.3)
 
 
+INCLUSION = dict(centre=(-13.0, 4.0), radius=3.5, ratio=8.0)  # outside the membrane, inside the view
+
+
 def hidden_effects() -> dict[str, dict[str, float]]:
+    """Hidden registered effects of each case, by qualified parameter name."""
     from skinfem.effects import prestretch_log_strain
 
+    pre_stretch = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
+    muscle = {"muscle_stiffness.log_factor": float(np.log(2.0))}
     return {
         "none": {},
-        "pre_stretch": {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()},
-        "muscle_stiffness": {"muscle_stiffness.log_factor": float(np.log(2.0))},
+        "pre_stretch": pre_stretch,
+        "muscle_stiffness": muscle,
         "skin_thickness": {"skin_thickness.log_factor": float(np.log(1.5))},
+        "two_effects": {**pre_stretch, **muscle},
+        "inclusion": {},
     }
+
+
+def hidden_defects(case: str) -> tuple:
+    """Hidden effects outside the registry: the stiff inclusion of case ``inclusion``."""
+    from inference.synthetic import StiffInclusion
+
+    return (StiffInclusion(**INCLUSION),) if case == "inclusion" else ()
+
+
+def true_effects(case: str) -> list[str]:
+    return sorted({name.split(".")[0] for name in hidden_effects()[case]})
 
 
 DATA_MESHES = {  # changes to the small preset
@@ -72,7 +95,7 @@ def data_fields(config, case: str, points, mesh_dir, comm) -> list:
     mine = collective(comm, lambda: dict(zip(
         range(comm.rank, len(DESIGNS), comm.size),
         measured_fields(config, SkinParams(*TRUTH), DESIGNS[comm.rank::comm.size], points, hidden_effects()[case],
-                        mesh_dir, increments=2))))
+                        mesh_dir, increments=2, defects=hidden_defects(case)))))
     merged = {j: f for part in comm.allgather(mine) for j, f in part.items()}
     return [merged[j] for j in range(len(DESIGNS))]
 
@@ -85,16 +108,56 @@ def box_centre(config: str) -> list[float]:
     return [float(np.mean(bounds[name])) for name in PARAM_NAMES]
 
 
-def verdict_class(report: dict) -> str:
-    best = next((c["effect"] for c in report["candidates"] if c["explains"]), None)
+def verdict_class(diagnosis: dict, structured: bool) -> str:
+    """The effect that explains the residual, or "no missing effect" / "none explains"."""
+    best = next((c["effect"] for c in diagnosis["candidates"] if c["explains"]), None)
     if best is not None:
         return best
-    return "no missing effect" if not report["versions"][0]["metrics"]["structured"] else "none explains"
+    return "none explains" if structured else "no missing effect"
+
+
+def baseline_verdict(report: dict) -> str:
+    return verdict_class(report, report["versions"][0]["metrics"]["structured"])
+
+
+def check(files, folder: Path, add: list[str], args) -> tuple[dict, float]:
+    """One ``skinid check`` into ``folder/report`` (its FE runs kept for the next round); returns
+    (report.json on rank 0 or {} , seconds)."""
+    from inference.__main__ import main as skinid
+
+    given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
+    start = time.perf_counter()
+    code = skinid(["check", "--config", args.config, "--measurement", *map(str, files), "--out", str(folder / "report"),
+                   "--noise-length", "2", "--noise-nugget", "0.3", "--increments", "2", "--confirm", "1",
+                   "--spacing", "2", "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
+                   *(["--add", *add] if add else [])])
+    seconds = time.perf_counter() - start
+    if MPI.COMM_WORLD.rank or code:
+        return {}, seconds
+    return json.loads((folder / "report" / "report.json").read_text()), seconds
+
+
+def rounds(files, folder: Path, case: str, args) -> tuple[list[str], list[dict], float]:
+    """The checks of one case: a single effect is added in the same check (its RMSE after adding
+    it is measured); two effects take successive rounds: the first check's named effect, if it
+    is a true one, is added in a second check, whose next round should name the other.
+    Returns (verdicts, reports, seconds); reports are {} on ranks other than 0."""
+    true = true_effects(case)
+    if len(true) < 2:
+        report, seconds = check(files, folder, true, args)
+        return [baseline_verdict(report)] if report else [], [report], seconds
+    report, seconds = check(files, folder, [], args)
+    first = MPI.COMM_WORLD.bcast(baseline_verdict(report) if report else None)
+    if first not in true:
+        return [first], [report], seconds
+    second_report, more = check(files, folder, [first], args)
+    second = second_report and verdict_class(second_report["next_round"],
+                                             second_report["versions"][-1]["metrics"]["structured"])
+    return [first, second], [report, second_report], seconds + more
 
 
 def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
-    """One check; returns its row (rank 0) and writes it, with the report, to out/case_seed."""
-    from inference.__main__ import main as skinid
+    """One case's checks; returns its row (rank 0) and writes it, with the report, to out/case_seed."""
     from inference.criticism import NoiseModel
     from inference.synthetic import write_noisy
 
@@ -102,32 +165,32 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     files = None
     if comm.rank == 0:
         files = write_noisy(fields, points, DESIGNS, NoiseModel(**NOISE), folder / "m", seed)
-    files = comm.bcast(files)
-    add = [] if case == "none" else ["--add", case]
-    given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
-    start = time.perf_counter()
-    code = skinid(["check", "--config", args.config, "--measurement", *map(str, files), "--out", str(folder / "report"),
-                   "--noise-length", "2", "--noise-nugget", "0.3", "--increments", "2", "--confirm", "1",
-                   "--spacing", "2", "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
-                   *add])
-    seconds = time.perf_counter() - start
-    if comm.rank or code:
+    verdicts, reports, seconds = rounds(comm.bcast(files), folder, case, args)
+    if comm.rank or not all(reports):
         return {}
-    report = json.loads((folder / "report" / "report.json").read_text())
-    effects = [c["effect"] for c in report["candidates"]]
-    t = report["timings"]
-    row = {"case": case, "seed": seed, "verdict": verdict_class(report),
-           "rank_of_true_effect": effects.index(case) + 1 if case in effects else None,
-           "rmse_baseline": report["versions"][0]["metrics"]["rmse"],
-           "rmse_with_true_effect": report["versions"][-1]["metrics"]["rmse"] if add else None,
-           "noise_rms": report["versions"][0]["metrics"]["noise_rms"],
-           "discretisation_sigma": report["discretisation"]["sigma"],
-           "discretisation_amplitude": report["discretisation"]["amplitude"],
-           "failed_runs": len(report["failed_runs"]), "seconds": seconds,
-           "fe_runs": t["compare_fe_runs"] + t["diagnose_fe_runs"] + t["add_fe_runs"],
-           "fe_runs_continued": t["fe_runs_continued"], "refined_seconds": t["refined_s"],
-           "estimates_baseline": report["versions"][0]["estimates"],
-           "estimates_with_true_effect": report["versions"][-1]["estimates"] if add else None}
+    first, last = reports[0], reports[-1]
+    true = true_effects(case)
+    effects = [c["effect"] for c in first["candidates"]]
+    ranks = [effects.index(e) + 1 for e in true if e in effects]
+    spot = first["hotspot"]
+    row = {"case": case, "seed": seed, "verdict": ", then ".join(verdicts),
+           "rank_of_true_effect": min(ranks) if ranks else None,
+           "rmse_baseline": first["versions"][0]["metrics"]["rmse"],
+           "added": [v["label"] for v in last["versions"][1:]],
+           "rmse_with_true_effect": last["versions"][-1]["metrics"]["rmse"] if len(last["versions"]) > 1 else None,
+           "noise_rms": first["versions"][0]["metrics"]["noise_rms"],
+           "discretisation_sigma": first["discretisation"]["sigma"],
+           "discretisation_amplitude": first["discretisation"]["amplitude"],
+           "hotspot": spot,
+           "hotspot_to_inclusion_mm": (float(np.hypot(spot["x"] - INCLUSION["centre"][0],
+                                                      spot["y"] - INCLUSION["centre"][1]))
+                                       if case == "inclusion" else None),
+           "failed_runs": sum(len(r["failed_runs"]) for r in reports), "seconds": seconds,
+           "fe_runs": sum(r["timings"][k] for r in reports
+                          for k in ("compare_fe_runs", "diagnose_fe_runs", "add_fe_runs", "next_round_fe_runs")),
+           "fe_runs_continued": first["timings"]["fe_runs_continued"], "refined_seconds": first["timings"]["refined_s"],
+           "estimates_baseline": first["versions"][0]["estimates"],
+           "estimates_with_true_effect": last["versions"][-1]["estimates"] if len(last["versions"]) > 1 else None}
     (folder / "row.json").write_text(json.dumps(row, indent=2) + "\n")
     return row
 

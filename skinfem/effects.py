@@ -52,6 +52,9 @@ class ModelTerms:
         muscle_mu: neo-Hookean shear modulus of the muscle [MPa].
         lamina: membrane stiffness (its G13, G23 are the membrane-skin shear coupling); None
             for a rigid membrane.
+        skin_stiffness: factor [-] on the skin's whole energy density (1 in the baseline); a
+            function of ``x`` makes the skin heterogeneous (a scar, an inclusion).
+        x: the reference coordinates (UFL SpatialCoordinate) [mm]; z = 0 is the skin surface.
     """
 
     skin_map: object
@@ -59,6 +62,8 @@ class ModelTerms:
     skin_bulk_ratio: object
     muscle_mu: object
     lamina: LaminaStiffness
+    skin_stiffness: object = 1.0
+    x: object = None
 
 
 class Effect:

@@ -35,7 +35,7 @@ import numpy as np
 from mpi4py import MPI
 
 from skinfem.config import Config, SolverConfig
-from skinfem.effects import ModelTerms, get_effect
+from skinfem.effects import Effect, ModelTerms, get_effect
 from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
@@ -95,12 +95,13 @@ class SkinModel:
         config: validated configuration (mesh, materials, solver).
         comm: MPI communicator the model is distributed over.
         mesh_dir: where meshes are read from / generated into.
-        effects: names of :mod:`skinfem.effects` to include; their parameters start at the
+        effects: names of :mod:`skinfem.effects` to include (or :class:`~skinfem.effects.Effect`
+            instances, e.g. a defect built for synthetic data); their parameters start at the
             null values (the baseline) and are set with :meth:`set_effects`.
     """
 
     def __init__(self, config: Config, comm: MPI.Comm = MPI.COMM_WORLD, mesh_dir=DEFAULT_MESH_DIR,
-                 effects: Sequence[str] = ()):
+                 effects: Sequence[str | Effect] = ()):
         t0 = time.perf_counter()
         self.config = config
         self.comm = comm
@@ -133,7 +134,7 @@ class SkinModel:
         F_skin, F_elastic, weight = F, F, 1.0  # baseline: stress-free skin of mesh thickness
         if self.effects:
             F_skin = skin_gradient(self.u)
-            F_elastic, weight = F_skin * F0, ufl.det(G) / ufl.det(F0)
+            F_elastic, weight = F_skin * F0, terms.skin_stiffness * ufl.det(G) / ufl.det(F0)
         skin_K = terms.skin_bulk_ratio * self.mu
         energy = weight * hgo_energy(
             F_elastic, self.mu, self.k1, self.k2, self.kappa, self.a0, skin_K, config.skin.fiber_invariant
@@ -181,7 +182,7 @@ class SkinModel:
         self.strain_sampler = SkinStrainSampler(self.u, cells, solver.quadrature_degree, F_seen)
         self.setup_seconds = time.perf_counter() - t0
 
-    def _model_terms(self, effects: Sequence[str]) -> ModelTerms:
+    def _model_terms(self, effects: Sequence[str | Effect]) -> ModelTerms:
         """Baseline energy terms, edited by each effect; effect parameters become Constants."""
         config, mesh = self.config, self.mesh
         terms = ModelTerms(
@@ -190,8 +191,9 @@ class SkinModel:
             skin_bulk_ratio=config.skin.bulk_ratio,
             muscle_mu=config.muscle.mu,
             lamina=LaminaStiffness.from_config(config.membrane) if config.membrane.model == "elastic" else None,
+            x=ufl.SpatialCoordinate(mesh),
         )
-        self.effects = [get_effect(name)() for name in dict.fromkeys(effects)]
+        self.effects = [get_effect(e)() if isinstance(e, str) else e for e in dict.fromkeys(effects)]
         self.effect_constants: dict[str, dolfinx.fem.Constant] = {}
         for effect in self.effects:
             p = {}

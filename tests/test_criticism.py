@@ -199,6 +199,10 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
         e = final["estimates"][name]
         assert abs(e["value"] - value) < 4 * e["sd"] + 0.005
     assert "pre_stretch" in report["verdict"] and "--add pre_stretch" in report["verdict"]
+    # the next round, on the version with the pre-stretch: nothing more is missing
+    assert report["next_round"]["after"] == "baseline + pre_stretch"
+    assert "no missing effect is needed" in report["next_round"]["verdict"]
+    assert not any(c["explains"] for c in report["next_round"]["candidates"])
     for png in ("regions.png", "candidates.png", "error_falls.png", "residual_baseline_obs0.png",
                 "residual_final_obs1.png"):
         assert (tmp_path / "report" / png).stat().st_size > 10_000
@@ -209,9 +213,9 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     assert res.returncode == 0, res.stderr[-3000:]
     again = json.loads((tmp_path / "report" / "report.json").read_text())
     t = again["timings"]
-    assert t["compare_fe_runs"] == t["diagnose_fe_runs"] == t["add_fe_runs"] == 0
+    assert t["compare_fe_runs"] == t["diagnose_fe_runs"] == t["add_fe_runs"] == t["next_round_fe_runs"] == 0
     assert t["fe_runs_read_from_cache"] == sum(report["timings"][k] for k in ("compare_fe_runs", "diagnose_fe_runs",
-                                                                              "add_fe_runs"))
+                                                                              "add_fe_runs", "next_round_fe_runs"))
     for v_again, v in zip(again["versions"], report["versions"], strict=True):
         assert v_again["metrics"] == v["metrics"] and v_again["estimates"] == v["estimates"]
     assert again["candidates"] == report["candidates"]
@@ -324,3 +328,41 @@ def test_the_corrected_models_jacobian_holds_the_shift_as_the_amplitudes_column(
         up[i] += h
         down[i] -= h
         np.testing.assert_allclose(jac[..., k], (corrected(up) - corrected(down)) / (2 * h), atol=1e-9)
+
+
+def test_the_hotspot_is_where_a_local_defect_sits(linear_world, grid_xy):
+    """(f) in the linear world: a bump of 3 grid steps' width added to the data at (10, -6.7) mm,
+    outside every candidate's span, is not attributed and the residual peaks at the bump."""
+    from inference.criticism.metrics import residual_hotspot
+
+    data, cal = linear_data(linear_world, grid_xy, {}, seed=8)
+    centre = np.array([10.0, -20 + 4 * 40 / 12])  # a grid point
+    bump = 2e-3 * np.exp(-np.sum((grid_xy - centre) ** 2, axis=1) / (2 * 4.0**2))
+    fields = data.fields + bump[None, :, None]
+    data = Data(fields, data.masks, data.xy, data.noise)
+    cal = calibrate(linear_world, data, cal.x, cal.free, max_iterations=20)
+    spot = residual_hotspot(cal, data)
+    assert np.hypot(spot.x - centre[0], spot.y - centre[1]) <= 40 / 12 + 1e-9  # within one grid step
+    d = diagnose(linear_world, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=20)
+    assert d.metrics.structured and d.best is None
+    assert f"({spot.x:.1f}, {spot.y:.1f}) mm" in d.text
+
+
+def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_world, grid_xy):
+    """(e) in the linear world: two effects at once; the first round names one, the round with
+    it added names the other, advises adding both, and with both the residual is noise."""
+    from inference.criticism import extend
+
+    truth = {"pre_stretch.eps_xx": 1.5, "muscle_stiffness.log_factor": -1.0}
+    data, cal = linear_data(linear_world, grid_xy, truth, seed=9)
+    first = diagnose(linear_world, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=20)
+    assert first.best is not None and first.best.effect in ("pre_stretch", "muscle_stiffness")
+    a = first.best.effect
+    (b,) = {"pre_stretch", "muscle_stiffness"} - {a}
+    with_a = first.fits[a]
+    second = diagnose(linear_world, with_a, data, [e for e in EFFECTS if e != a], half=10.0, band=4.0,
+                      confirm=2, added=[a], max_iterations=20)
+    assert second.best is not None and second.best.effect == b
+    assert f"--add {a} {b}" in second.text
+    both = extend(linear_world, with_a, data, b, max_iterations=20)
+    assert not diagnose(linear_world, both, data, [], half=10.0, band=4.0).metrics.structured

@@ -3,8 +3,9 @@
 :func:`run_check` calibrates the baseline on the mesh the user chose (started at the
 emulator's posterior mode, or at the best of a few spread points), estimates and carries the
 mesh's own discretisation error (:mod:`.discretisation`), diagnoses the residual
-(:mod:`.diagnosis`), adds the requested effects one after the other and returns every model
-version with its metrics; :func:`inference.criticism.report.write_report` writes the report.
+(:mod:`.diagnosis`), adds the requested effects one after the other, diagnoses what is still
+missing after them (the next round) and returns every model version with its metrics;
+:func:`inference.criticism.report.write_report` writes the report.
 """
 
 from __future__ import annotations
@@ -102,6 +103,8 @@ class CheckTimings:
     diagnose_fe_runs: int = 0
     add_s: float = 0.0
     add_fe_runs: int = 0
+    next_round_s: float = 0.0  # the diagnosis of the last version (with --add)
+    next_round_fe_runs: int = 0
     add_reused_from_diagnose_s: float = 0.0  # fits made while diagnosing, reused as versions
     add_reused_from_diagnose_fe_runs: int = 0
     fe_runs_read_from_cache: int = 0
@@ -118,7 +121,8 @@ class CheckResult:
     half: float
     band: float
     versions: list[Version]
-    diagnosis: Diagnosis
+    diagnosis: Diagnosis  # of the baseline
+    next_round: Diagnosis | None  # of the last version, when effects were added: what is still missing
     discretisation: DiscretisationError | None
     noise_statement: NoiseStatement
     failures: list[FailedRun]
@@ -202,12 +206,22 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     t0, runs0 = time.perf_counter(), forward.runs
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
+    next_round = None
+    if settings.add:
+        next_round = diagnose(model, versions[-1].calibration, data,
+                              [c for c in settings.candidates if c not in settings.add], half, band, settings.confirm,
+                              mesh_resolved=disc is None or disc.resolved, added=settings.add,
+                              max_iterations=settings.max_iterations)
+        timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
-    diagnosis.text = " ".join(part for part in (disc.summary() if disc else "", noise_statement.summary(noise.sd),
-                                                 diagnosis.text) if part)
+    diagnosis.text = " ".join(part for part in (
+        disc.summary() if disc else "", noise_statement.summary(noise.sd), diagnosis.text,
+        f"With {' and '.join(settings.add)} added, the diagnosis repeated: {next_round.text}" if next_round else "",
+    ) if part)
     return CheckResult(
         data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
-        versions=versions, diagnosis=diagnosis, discretisation=disc, noise_statement=noise_statement,
+        versions=versions, diagnosis=diagnosis, next_round=next_round, discretisation=disc,
+        noise_statement=noise_statement,
         failures=forward.failures, start=start,
         start_from=start_from,
         gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "

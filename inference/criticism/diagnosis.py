@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,14 @@ from scipy import stats
 
 from inference.criticism.calibration import Calibration, calibrate
 from inference.criticism.data import Data, NoiseModel, stack
-from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
+from inference.criticism.metrics import (
+    Hotspot,
+    RegionResidual,
+    ResidualMetrics,
+    rank_regions,
+    residual_hotspot,
+    residual_metrics,
+)
 from inference.forward import ForwardModel
 from skinfem.effects import get_effect
 
@@ -172,6 +180,7 @@ def extend(forward: ForwardModel, cal: Calibration, data: Data, effect: str, **k
 class Diagnosis:
     metrics: ResidualMetrics
     regions: list[RegionResidual]
+    hotspot: Hotspot
     scores: list[CandidateScore]
     fits: dict[str, Calibration]
     text: str
@@ -184,16 +193,17 @@ class Diagnosis:
 
 
 def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str], half: float, band: float,
-             confirm: int = 2, mesh_resolved: bool = True, **fit_kwargs) -> Diagnosis:
+             confirm: int = 2, mesh_resolved: bool = True, added: Sequence[str] = (), **fit_kwargs) -> Diagnosis:
     """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
     (only those with strong evidence) are calibrated for real, and their fitted Delta BIC and
-    share of the excess residual replace the linearised ones.
+    share of the excess residual replace the linearised ones. ``added``: effects ``cal``
+    already includes (a later round), kept in the verdict's ``--add`` advice.
     """
     start, runs0 = time.perf_counter(), forward.runs
     metrics = residual_metrics(cal, data)
-    regions = rank_regions(cal, data, half, band)
+    regions, hotspot = rank_regions(cal, data, half, band), residual_hotspot(cal, data)
     scores = score_candidates(cal, data, signatures(forward, cal, data, effects))
     fits: dict[str, Calibration] = {}
     if metrics.structured:
@@ -208,13 +218,13 @@ def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[
         scores.sort(key=lambda s: -s.delta_bic)
     for s in scores:
         s.explains = metrics.structured and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
-    text = verdict(metrics, scores, regions, mesh_resolved)
-    return Diagnosis(metrics, regions, scores, fits, text, forward.runs - runs0,
+    text = verdict(metrics, scores, regions, hotspot, mesh_resolved, added)
+    return Diagnosis(metrics, regions, hotspot, scores, fits, text, forward.runs - runs0,
                      time.perf_counter() - start)
 
 
-def verdict(metrics: ResidualMetrics, scores: list[CandidateScore], regions: list[RegionResidual],
-            mesh_resolved: bool = True) -> str:
+def verdict(metrics: ResidualMetrics, scores: list[CandidateScore], regions: list[RegionResidual], hotspot: Hotspot,
+            mesh_resolved: bool = True, added: Sequence[str] = ()) -> str:
     """One paragraph: is the residual noise, where is it not, which candidate explains it.
 
     ``mesh_resolved`` False (the model's discretisation error exceeds the noise) turns "something
@@ -226,7 +236,8 @@ def verdict(metrics: ResidualMetrics, scores: list[CandidateScore], regions: lis
     worst = regions[0]
     text = (f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
             f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); it is largest at the "
-            f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1).")
+            f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1), "
+            f"{hotspot.summary()}.")
     best = next((s for s in scores if s.explains), None)
     if best is None:
         lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
@@ -241,4 +252,4 @@ def verdict(metrics: ResidualMetrics, scores: list[CandidateScore], regions: lis
     if best.confounding > 0.8:
         text += (" It is strongly confounded with the skin parameters: more load frames or membrane designs "
                  "would separate them.")
-    return text + f" Add it with --add {best.effect}."
+    return text + f" Add it with --add {' '.join([*added, best.effect])}."

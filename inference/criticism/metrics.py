@@ -13,6 +13,7 @@ from inference.criticism.calibration import Calibration
 from inference.criticism.data import Data, stack
 
 ALPHA = 0.01  # posterior-predictive p below which the residual is "structured" (not noise)
+HOTSPOT_POINTS = 9  # the residual's peak is located over this many nearest measured points
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,37 @@ class RegionResidual:
     region: str
     points: int
     rms_sigma: float
+
+
+@dataclass(frozen=True)
+class Hotspot:
+    """The disc around the measured point (x, y) [mm] whose ``points`` nearest measured points
+    (within ``radius`` [mm]) have the largest RMS standardised residual [sigma], all
+    observations and components pooled: where a local defect sits."""
+
+    x: float
+    y: float
+    radius: float
+    points: int
+    rms_sigma: float
+
+    def summary(self) -> str:
+        return (f"peaking within {self.radius:.1f} mm of (x, y) = ({self.x:.1f}, {self.y:.1f}) mm "
+                f"({self.rms_sigma:.1f} sigma RMS over its {self.points} nearest points)")
+
+
+def residual_hotspot(cal: Calibration, data: Data, k: int = HOTSPOT_POINTS) -> Hotspot:
+    """The measured point whose ``k`` nearest measured points hold the largest RMS standardised
+    residual (k nearest rather than a fixed radius: the disc adapts to the point density)."""
+    squares = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=2)  # (n_obs, n_pts)
+    xy = np.concatenate([data.xy[o, m] for o, m in enumerate(data.masks)])
+    sq = np.concatenate([squares[o, m] for o, m in enumerate(data.masks)])
+    k = min(k, len(xy))
+    distance, nearest = cKDTree(xy).query(xy, k)
+    distance, nearest = distance.reshape(len(xy), k), nearest.reshape(len(xy), k)
+    rms = np.sqrt(sq[nearest].mean(axis=1))
+    best = int(np.argmax(rms))
+    return Hotspot(float(xy[best, 0]), float(xy[best, 1]), float(distance[best, -1]), k, float(rms[best]))
 
 
 def neighbour_weights(xy: np.ndarray, k: int = 8) -> sparse.csr_matrix:

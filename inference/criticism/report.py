@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.criticism.check import CheckResult
+from inference.criticism.diagnosis import CandidateScore
 from inference.plots import field_grid, pyplot, save_figure
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.outputs import write_text
@@ -146,7 +147,7 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     lines = (compare_lines(result) + discretisation_lines(result) + failure_lines(result)
              + [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(baseline_maps)]
              + region_lines(result) + candidate_lines(result) + version_lines(result, final_maps)
-             + cost_lines(result))
+             + next_round_lines(result) + cost_lines(result))
     path = out / "report.md"
     write_text(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
     write_text(path, "\n".join(lines))  # last: a report.md means a complete report
@@ -182,7 +183,8 @@ def region_lines(result: CheckResult) -> list[str]:
              "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
     lines += [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |"
               for i, g in enumerate(result.diagnosis.regions)]
-    return lines + ["", "![regions](regions.png)"]
+    spot = result.diagnosis.hotspot
+    return lines + ["", f"The largest residual is {spot.summary()}.", "", "![regions](regions.png)"]
 
 
 def candidate_lines(result: CheckResult) -> list[str]:
@@ -190,15 +192,30 @@ def candidate_lines(result: CheckResult) -> list[str]:
     lines = ["", "## 3. Which effect is missing", "",
              "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
              "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
-             "the effect added.", "",
-             "| effect | ΔBIC | share of excess residual | confounding | score T (dof) | p | estimate | explains |",
+             "the effect added.", ""]
+    return lines + candidate_table(result.diagnosis.scores) + ["", "![candidates](candidates.png)"]
+
+
+def candidate_table(scores: list[CandidateScore]) -> list[str]:
+    lines = ["| effect | ΔBIC | share of excess residual | confounding | score T (dof) | p | estimate | explains |",
              "|---|---|---|---|---|---|---|---|"]
-    for s in result.diagnosis.scores:
+    for s in scores:
         est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in s.estimate.items())
         lines.append(f"| {s.effect} | {s.delta_bic:+.1f} ({'fit' if s.fitted else 'linearised'}) | "
                      f"{s.share_explained:.0%} | {s.confounding:.0%} | {s.statistic:.1f} ({s.dof}) | {s.p_value:.2g} | "
                      f"{est} | {'**yes**' if s.explains else 'no'} |")
-    return lines + ["", "![candidates](candidates.png)"]
+    return lines
+
+
+def next_round_lines(result: CheckResult) -> list[str]:
+    """Section 6: what is still missing after the added effects (only with --add)."""
+    d = result.next_round
+    if d is None:
+        return []
+    return (["", f"## 6. Next round: what is still missing with {result.versions[-1].calibration.label}", "",
+             d.text, "", "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
+            + [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
+            + [""] + (candidate_table(d.scores) if d.scores else ["No candidate is left to test."]))
 
 
 def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
@@ -239,7 +256,8 @@ def cost_lines(result: CheckResult) -> list[str]:
     return ["", "## Cost", "",
             f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
             f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
-            f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused); "
+            f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused), "
+            f"next round {t.next_round_s:.0f} s ({t.next_round_fe_runs} runs); "
             f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
             f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
             f"the cache of an earlier run (`fe_runs/`).", ""]
@@ -265,7 +283,13 @@ def report_dict(result: CheckResult) -> dict:
                             "used_sd": result.data.noise.sd.tolist()},
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
         "regions": [dataclasses.asdict(g) for g in d.regions],
+        "hotspot": dataclasses.asdict(d.hotspot),
         "candidates": [dict(vars(s)) for s in d.scores],
+        "next_round": None if result.next_round is None else {
+            "after": result.versions[-1].calibration.label, "verdict": result.next_round.text,
+            "regions": [dataclasses.asdict(g) for g in result.next_round.regions],
+            "hotspot": dataclasses.asdict(result.next_round.hotspot),
+            "candidates": [dict(vars(s)) for s in result.next_round.scores]},
         "versions": [{"label": v.calibration.label, "metrics": dataclasses.asdict(v.metrics),
                       "regions": [dataclasses.asdict(g) for g in v.regions],
                       "estimates": v.calibration.estimates(), "fe_runs": v.calibration.fe_runs,
