@@ -20,7 +20,8 @@ as a version (``--add``), so that the RMSE after adding it is measured too; two 
 successive rounds (the first check's named effect added in a second check, whose next round
 should name the other).
 
-Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``; a rerun skips them,
+Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``, and each case's
+noise-free data ``<out>/data_<data>_<case>.npy`` (delete them after changing a case); a rerun skips them,
 and ``--summarise`` tabulates the finished ones without running more.
 Writes the confusion table (true effect vs verdict), the true effect's rank, RMSE before and
 after adding it, seconds and FE runs to benchmarks/results/criticism.json. Recorded, not asserted.
@@ -86,18 +87,26 @@ def data_config(name: str):
                                              solver={"element_degree": 2, "quadrature_degree": 4})
 
 
-def data_fields(config, case: str, points, mesh_dir, comm) -> list:
-    """Noise-free data of every design (one design per rank at a time), on every rank."""
+def data_fields(config, case: str, points, mesh_dir, comm, path: Path) -> np.ndarray:
+    """Noise-free data (n_designs, n_points, 3) of every design (one design per rank at a time),
+    on every rank; kept in ``path`` (.npy) so that a rerun does not recompute them."""
     from inference.synthetic import measured_fields
     from skinfem.parallel import collective
     from skinfem.params import SkinParams
 
+    if path.exists():
+        return np.load(path)
     mine = collective(comm, lambda: dict(zip(
         range(comm.rank, len(DESIGNS), comm.size),
         measured_fields(config, SkinParams(*TRUTH), DESIGNS[comm.rank::comm.size], points, hidden_effects()[case],
                         mesh_dir, increments=2, defects=hidden_defects(case)))))
     merged = {j: f for part in comm.allgather(mine) for j, f in part.items()}
-    return [merged[j] for j in range(len(DESIGNS))]
+    fields = np.stack([merged[j] for j in range(len(DESIGNS))])
+    if comm.rank == 0:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path.with_suffix(".tmp.npy"), fields)
+        path.with_suffix(".tmp.npy").replace(path)
+    return fields
 
 
 def box_centre(config: str) -> list[float]:
@@ -221,7 +230,8 @@ def main() -> None:
         for case in args.cases:
             if not (args.out / f"{case}_{seed}" / "row.json").exists():
                 if case not in fields:
-                    fields[case] = data_fields(config, case, points, args.mesh_dir, comm)
+                    fields[case] = data_fields(config, case, points, args.mesh_dir, comm,
+                                               args.out / f"data_{args.data}_{case}.npy")
                 run_case(case, seed, fields[case], points, args, comm)
     rows = [json.loads((args.out / f"{case}_{s}" / "row.json").read_text()) for case in args.cases
             for s in range(args.seeds) if (args.out / f"{case}_{s}" / "row.json").exists()]
