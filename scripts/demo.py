@@ -55,6 +55,37 @@ def overview(out: Path, top: Path, bottom: list[Path]) -> Path:
     return out / "overview.png"
 
 
+def run_parallel(*args: str) -> None:
+    """``skinid`` on 2 MPI ranks when mpirun is installed, else serial."""
+    mpirun = BIN / "mpirun"
+    if mpirun.exists():
+        subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *args], check=True)
+    else:
+        run(*args)
+
+
+def hidden_prestretch_check(out: Path, emu: Path, truth: np.ndarray) -> dict:
+    """Synthetic measurements of material ``truth`` with a hidden pre-stretch, and their check
+    (resumed if a killed run left FE runs); returns report.json."""
+    from inference.criticism import NoiseModel
+    from inference.synthetic import synthetic_measurements
+    from skinfem.config import load_config
+    from skinfem.effects import prestretch_log_strain
+    from skinfem.params import SkinParams
+
+    check = out / "check"
+    if not (check / "report.json").exists():
+        hidden = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
+        files = synthetic_measurements(load_config("small"), SkinParams.from_array(truth),
+                                       [(0.05, 0.05), (0.05, -0.05)], NoiseModel(np.full(3, 2e-4), 2.0, 0.3),
+                                       out / "measurements", hidden, seed=1, increments=2)
+        cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
+               "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2",
+               "--spacing", "2", "--no-discretisation"]  # data from the checked mesh: its model is exact
+        run_parallel(*cmd, *(["--resume"] if check.exists() else []))  # a killed check: reuse its FE runs
+    return json.loads((check / "report.json").read_text())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
@@ -63,20 +94,14 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     data, emu, post = out / "small.h5", out / "emulator", out / "posterior"
-    mpirun = BIN / "mpirun"
 
     step("1/5 sweep: 16 materials x 5 membrane designs x 10 frames (small preset)")
-    cmd = ["sweep", "--config", "small", "--out", str(data)] + (["--resume"] if data.exists() else [])
-    if mpirun.exists():
-        subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *cmd], check=True)
-    else:
-        run(*cmd)
+    run_parallel("sweep", "--config", "small", "--out", str(data), *(["--resume"] if data.exists() else []))
 
     step("2/5 surrogate: PCA + GPs, validated on the 4 held-out materials")
     if not (emu / "validation.json").exists():  # --force: replace an incomplete folder of an earlier run
         run("surrogate", "fit", "--data", str(data), "--out", str(emu), "--gp-fraction", "0.5", "--force")
 
-    from inference.plots import strain_maps
     from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
 
@@ -90,31 +115,20 @@ def main() -> None:
             "--designs", str(mixed), "--out", str(post), "--gp-variance", "mode", "--force")
     summary = json.loads((post / "summary.json").read_text())
 
-    truth = dataset.params[material]
-    check = out / "check"
     step(f"4/5 model criticism: material {material} with a hidden pre-stretch 1.08 x 1.02 at 30 deg")
-    if not (check / "report.json").exists():
-        from inference.criticism import NoiseModel
-        from inference.synthetic import synthetic_measurements
-        from skinfem.config import load_config
-        from skinfem.effects import prestretch_log_strain
-        from skinfem.params import SkinParams
-
-        hidden = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
-        files = synthetic_measurements(load_config("small"), SkinParams.from_array(truth),
-                                       [(0.05, 0.05), (0.05, -0.05)], NoiseModel(np.full(3, 2e-4), 2.0, 0.3),
-                                       out / "measurements", hidden, seed=1, increments=2)
-        cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
-               "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2",
-               "--spacing", "2", "--no-discretisation"]  # data from the checked mesh: its model is exact
-        cmd += ["--resume"] if check.exists() else []  # a killed check: reuse its finished FE runs
-        if mpirun.exists():
-            subprocess.run([str(mpirun), "-n", "2", str(BIN / "skinid"), *cmd], check=True)
-        else:
-            run(*cmd)
-    criticism = json.loads((check / "report.json").read_text())
+    criticism = hidden_prestretch_check(out, emu, dataset.params[material])
 
     step("5/5 report")
+    write_report(out, dataset, emulator, material, mixed, summary, criticism)
+    print(f"\ndemo finished in {time.perf_counter() - start:.0f} s; report: {out / 'report.md'}")
+
+
+def write_report(out: Path, dataset, emulator, material: int, mixed: int, summary: dict, criticism: dict) -> None:
+    """report.md with the strain maps, the posterior table and the criticism's verdict, and the
+    README's overview figure."""
+    from inference.plots import strain_maps
+
+    truth = dataset.params[material]
     fe = dataset.strain(material, mixed, -1)
     median = np.array([summary["parameters"][n]["median"] for n in ("mu", "k1", "k2", "kappa", "theta")])
     pred = emulator.predict_fields(median[None], dataset.designs[mixed], 1.0)[0]
@@ -127,18 +141,27 @@ def main() -> None:
         f"{'yes' if e['covered'] else 'no'} | {e['r_hat']:.3f} | {min(e['ess_bulk'], e['ess_tail']):.0f} |"
         for n, e in summary["parameters"].items() if "true" in e
     )
-    val = json.loads((emu / "validation.json").read_text())["components"]
+    val = json.loads((out / "emulator" / "validation.json").read_text())["components"]
     versions = "\n".join(
         f"| {v['label']} | {v['metrics']['rmse']:.2e} | {v['metrics']['chi2_per_dof']:.2f} | "
         f"{v['metrics']['ppc_p']:.3f} | {'no' if v['metrics']['structured'] else 'yes'} |"
         for v in criticism["versions"]
     )
-    report = f"""# skinid demo (small preset)
+    (out / "report.md").write_text(REPORT.format(
+        data=dataset.path.name, cells=dataset.xy.shape[0], n_weights=emulator.n_weights,
+        r2_xx=", ".join(f"{v:.4f}" for v in val["xx"]["r2_per_pc"]),
+        r2_yy=", ".join(f"{v:.4f}" for v in val["yy"]["r2_per_pc"]),
+        material=material, rows=rows, verdict=criticism["verdict"], versions=versions))
+    check = out / "check"
+    overview(out, out / "strain_maps.png", [check / "regions.png", check / "error_falls.png"])
 
-Dataset `{data.name}`: 16 materials × 5 designs × 10 frames, {dataset.xy.shape[0]} skin cells.
-Emulator: {emulator.n_weights} PCs, GP R² on held-out materials:
-E_xx {', '.join(f'{v:.4f}' for v in val['xx']['r2_per_pc'])};
-E_yy {', '.join(f'{v:.4f}' for v in val['yy']['r2_per_pc'])}.
+
+REPORT = """# skinid demo (small preset)
+
+Dataset `{data}`: 16 materials × 5 designs × 10 frames, {cells} skin cells.
+Emulator: {n_weights} PCs, GP R² on held-out materials:
+E_xx {r2_xx};
+E_yy {r2_yy}.
 
 ![strain maps](strain_maps.png)
 
@@ -158,7 +181,7 @@ Synthetic DIC measurements of material {material} under two membranes, made with
 pre-stretch of 1.08 × 1.02 at 30° that the baseline model does not have, plus correlated noise
 (sd 2e-4, 2 mm). Full report: [check/report.md](check/report.md).
 
-> {criticism["verdict"]}
+> {verdict}
 
 | version | RMSE | χ²/dof | PPC p | consistent with noise |
 |---|---|---|---|---|
@@ -170,9 +193,6 @@ pre-stretch of 1.08 × 1.02 at 30° that the baseline model does not have, plus 
 
 ![baseline residual](check/residual_baseline_obs1.png)
 """
-    (out / "report.md").write_text(report)
-    overview(out, out / "strain_maps.png", [check / "regions.png", check / "error_falls.png"])
-    print(f"\ndemo finished in {time.perf_counter() - start:.0f} s; report: {out / 'report.md'}")
 
 
 if __name__ == "__main__":

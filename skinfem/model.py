@@ -78,6 +78,20 @@ class StrainFrames:
     seconds: float = 0.0
 
 
+@dataclass
+class _Ramp:
+    """State of a load ramp (:meth:`SkinModel.simulate`): the load fraction reached, the next
+    increment, up to two earlier converged states (t, dofs) for the predictor, the next solve's
+    factorisation policy, and the Newton iterations and cut-backs so far."""
+
+    step: float
+    t: float = 0.0
+    history: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    policy: Factorisation = Factorisation.FIRST_STEP  # new parameters: a fresh factorisation
+    iterations: list[int] = field(default_factory=list)
+    cutbacks: int = 0
+
+
 def extrapolate(t_new: float, states: Sequence[tuple[float, np.ndarray]]) -> np.ndarray:
     """Value at load fraction ``t_new`` of the Lagrange polynomial through ``states``, a list
     of (t, u) pairs with distinct t (degree len(states) - 1; exact for such polynomials)."""
@@ -108,79 +122,72 @@ class SkinModel:
         self.mesh_path = ensure_mesh(config, mesh_dir, comm)
         self.mesh_sha256 = comm.bcast(file_sha256(self.mesh_path) if comm.rank == 0 else None)
         data = read_mesh(self.mesh_path, comm)
-        self.mesh, self.cell_tags = data.mesh, data.cell_tags
-        self.facet_tags = data.facet_tags
-        mesh = self.mesh
-        solver = config.solver
-        self.V = dolfinx.fem.functionspace(mesh, ("Lagrange", solver.element_degree, (3,)))
+        self.mesh, self.cell_tags, self.facet_tags = data.mesh, data.cell_tags, data.facet_tags
+        self.V = dolfinx.fem.functionspace(self.mesh, ("Lagrange", config.solver.element_degree, (3,)))
         self.u = dolfinx.fem.Function(self.V, name="displacement")
-        c = lambda value: dolfinx.fem.Constant(mesh, PETSc.ScalarType(value))  # noqa: E731
+        # strain is measured from the unloaded equilibrium u_ref (zero unless pre-stressed)
+        self.u_ref = dolfinx.fem.Function(self.V, name="reference_displacement")
+        c = lambda value: dolfinx.fem.Constant(self.mesh, PETSc.ScalarType(value))  # noqa: E731
         self.mu, self.k1, self.k2, self.kappa = c(1.0), c(0.0), c(1.0), c(0.0)
-        self.a0 = dolfinx.fem.Constant(mesh, np.array([1.0, 0.0, 0.0], dtype=PETSc.ScalarType))
+        self.a0 = dolfinx.fem.Constant(self.mesh, np.array([1.0, 0.0, 0.0], dtype=PETSc.ScalarType))
         self.alpha11, self.alpha22 = c(0.0), c(0.0)
-
-        dx = ufl.Measure(
-            "dx",
-            domain=mesh,
-            subdomain_data=self.cell_tags,
-            metadata={"quadrature_degree": solver.quadrature_degree},
-        )
-        terms = self._model_terms(effects)
-        F = ufl.Identity(3) + ufl.grad(self.u)
-        G, F0 = terms.skin_map, terms.skin_prestretch
-        def skin_gradient(w):  # deformation gradient of displacement w in the mapped skin
-            return ufl.Identity(3) + ufl.grad(w) * ufl.inv(G)
-
-        F_skin, F_elastic, weight = F, F, 1.0  # baseline: stress-free skin of mesh thickness
-        if self.effects:
-            F_skin = skin_gradient(self.u)
-            F_elastic, weight = F_skin * F0, terms.skin_stiffness * ufl.det(G) / ufl.det(F0)
-        skin_K = terms.skin_bulk_ratio * self.mu
-        energy = weight * hgo_energy(
-            F_elastic, self.mu, self.k1, self.k2, self.kappa, self.a0, skin_K, config.skin.fiber_invariant
-        ) * dx(TAGS["skin"])
-        muscle = config.muscle
-        energy += neo_hookean_energy(F, terms.muscle_mu, muscle.bulk_ratio * terms.muscle_mu) * dx(TAGS["muscle"])
         self.has_membrane = config.membrane.model == "elastic"
-        if self.has_membrane:
-            energy += membrane_energy(F, self.alpha11, self.alpha22, terms.lamina) * dx(TAGS["membrane"])
-        self.energy = energy
-        v = ufl.TestFunction(self.V)
-        du = ufl.TrialFunction(self.V)
-        residual = ufl.derivative(energy, self.u, v)
-        jacobian = ufl.derivative(residual, self.u, du)
+        terms = self._model_terms(effects)
+        self.energy = self._energy(terms)
         self.bcs = self._boundary_conditions()
-        self._prefix = f"skinid_{id(self)}_"
-        self.problem = dolfinx.fem.petsc.NonlinearProblem(
-            residual,
-            self.u,
-            bcs=self.bcs,
-            J=jacobian,
-            petsc_options_prefix=self._prefix,
-            jit_options=JIT_OPTIONS,
-            petsc_options={
-                "snes_type": "newtonls",
-                "snes_linesearch_type": "basic",
-                "snes_rtol": solver.rtol,
-                "snes_atol": solver.atol,
-                "snes_stol": 1e-9,
-                "snes_max_it": solver.max_iterations,
-                "pc_type": "lu",
-                "pc_factor_mat_solver_type": "mumps",
-                **(self._krylov_options(solver) if solver.refactor_krylov else {"ksp_type": "preonly"}),
-            },
-        )
+        self.problem = self._nonlinear_problem()
         self.factorizations = 0  # of the current simulation
         self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
-        cells = top_skin_cells(mesh, self.cell_tags, TAGS["skin"], depth)
-        # strain is measured from the unloaded equilibrium u_ref (zero unless pre-stressed)
-        self.u_ref = dolfinx.fem.Function(self.V, name="reference_displacement")
-        F_seen = F
-        if self.effects:
-            F_seen = F_skin * ufl.inv(skin_gradient(self.u_ref))
-        self.strain_sampler = SkinStrainSampler(self.u, cells, solver.quadrature_degree, F_seen)
+        cells = top_skin_cells(self.mesh, self.cell_tags, TAGS["skin"], depth)
+        F_seen = ufl.Identity(3) + ufl.grad(self.u)
+        if self.effects:  # the skin's gradient relative to its unloaded equilibrium
+            F_seen = self._skin_gradient(terms, self.u) * ufl.inv(self._skin_gradient(terms, self.u_ref))
+        self.strain_sampler = SkinStrainSampler(self.u, cells, config.solver.quadrature_degree, F_seen)
         self.setup_seconds = time.perf_counter() - t0
+
+    @staticmethod
+    def _skin_gradient(terms: ModelTerms, w) -> ufl.core.expr.Expr:
+        """Deformation gradient of displacement ``w`` in the mapped skin: I + grad(w) G^-1."""
+        return ufl.Identity(3) + ufl.grad(w) * ufl.inv(terms.skin_map)
+
+    def _energy(self, terms: ModelTerms) -> ufl.Form:
+        """Total energy: HGO skin (with the effects' map, pre-stretch and stiffness), neo-Hookean
+        muscle and, for an elastic membrane, the membrane with its eigen-strain."""
+        config = self.config
+        dx = ufl.Measure("dx", domain=self.mesh, subdomain_data=self.cell_tags,
+                         metadata={"quadrature_degree": config.solver.quadrature_degree})
+        F = ufl.Identity(3) + ufl.grad(self.u)
+        F_elastic, weight = F, 1.0  # baseline: stress-free skin of mesh thickness
+        if self.effects:
+            G, F0 = terms.skin_map, terms.skin_prestretch
+            F_elastic = self._skin_gradient(terms, self.u) * F0
+            weight = terms.skin_stiffness * ufl.det(G) / ufl.det(F0)
+        skin = config.skin
+        energy = weight * hgo_energy(F_elastic, self.mu, self.k1, self.k2, self.kappa, self.a0,
+                                     terms.skin_bulk_ratio * self.mu, skin.fiber_invariant) * dx(TAGS["skin"])
+        muscle_K = config.muscle.bulk_ratio * terms.muscle_mu
+        energy += neo_hookean_energy(F, terms.muscle_mu, muscle_K) * dx(TAGS["muscle"])
+        if self.has_membrane:
+            energy += membrane_energy(F, self.alpha11, self.alpha22, terms.lamina) * dx(TAGS["membrane"])
+        return energy
+
+    def _nonlinear_problem(self) -> dolfinx.fem.petsc.NonlinearProblem:
+        """Newton (SNES, full steps) on the energy's residual and exact Jacobian; linear steps
+        by MUMPS LU, or GMRES preconditioned by a kept factorisation (module doc)."""
+        solver = self.config.solver
+        residual = ufl.derivative(self.energy, self.u, ufl.TestFunction(self.V))
+        jacobian = ufl.derivative(residual, self.u, ufl.TrialFunction(self.V))
+        self._prefix = f"skinid_{id(self)}_"
+        return dolfinx.fem.petsc.NonlinearProblem(
+            residual, self.u, bcs=self.bcs, J=jacobian, petsc_options_prefix=self._prefix, jit_options=JIT_OPTIONS,
+            petsc_options={
+                "snes_type": "newtonls", "snes_linesearch_type": "basic", "snes_rtol": solver.rtol,
+                "snes_atol": solver.atol, "snes_stol": 1e-9, "snes_max_it": solver.max_iterations,
+                "pc_type": "lu", "pc_factor_mat_solver_type": "mumps",
+                **(self._krylov_options(solver) if solver.refactor_krylov else {"ksp_type": "preonly"}),
+            },
+        )
 
     def _model_terms(self, effects: Sequence[str | Effect]) -> ModelTerms:
         """Baseline energy terms, edited by each effect; effect parameters become Constants."""
@@ -399,63 +406,71 @@ class SkinModel:
         start = time.perf_counter()
         self.set_params(params)
         self.factorizations = 0
-        refactor_krylov = self.config.solver.refactor_krylov
-        x = self.u.x.array
-        x[:] = 0.0
-        self.u_ref.x.array[:] = 0.0
-        if self.prestressed:
-            self._set_load(0.0, design)
-            converged, _, _ = self._newton_escalating(Factorisation.FIRST_STEP)
-            if not converged:
-                raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
-            self.u_ref.x.array[:] = x
-            if on_reference is not None:
-                on_reference()
+        self.u.x.array[:] = 0.0
+        if not self._reference_equilibrium(design, None, lambda: self._newton_escalating(Factorisation.FIRST_STEP)[0],
+                                           on_reference):
+            raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
         targets = self.load_fractions()
-        base_step = targets[0]
-        t, step = 0.0, base_step
-        history: list[tuple[float, np.ndarray]] = []  # (t, u) of up to two earlier states
-        frames, iterations, cutbacks = [], [], 0
-        policy = Factorisation.FIRST_STEP  # new parameters: a fresh factorisation
+        ramp = _Ramp(step=targets[0])
+        frames = []
         for target in targets:
-            while t < target - 1e-12:
-                step = min(step, target - t)
-                t_new = t + step
-                saved = x.copy()
-                x[:] = extrapolate(t_new, [(t, saved), *history])
-                self._set_load(t_new, design)
-                converged, its, krylov = self._newton_escalating(policy)
-                if converged:
-                    history = [(t, saved), *history[:1]]
-                    t = t_new
-                    iterations.append(its)
-                    step = min(2 * step, base_step)
-                    policy = Factorisation.FIRST_STEP if krylov > refactor_krylov else Factorisation.REUSE
-                    continue
-                x[:] = saved
-                policy = Factorisation.FIRST_STEP
-                cutbacks += 1
-                step /= 2
-                if cutbacks > self.config.solver.max_cutbacks:
-                    raise ConvergenceError(
-                        f"Newton failed at load fraction t = {t_new:.4g} for {params} and {design} "
-                        f"after {cutbacks - 1} cut-backs"
-                    )
+            self._ramp_to(target, ramp, design, params)
             frames.append(self.strain_sampler())
             if on_frame is not None:
                 on_frame(float(target))
         seconds = time.perf_counter() - start
         if self.comm.rank != 0:
-            return StrainFrames(targets, None, None, None, iterations, cutbacks, seconds)
-        return StrainFrames(
-            t=targets,
-            strain=np.stack(frames),
-            xy=self.strain_sampler.xy,
-            volume=self.strain_sampler.volume,
-            newton_iterations=iterations,
-            cutbacks=cutbacks,
-            seconds=seconds,
-        )
+            return StrainFrames(targets, None, None, None, ramp.iterations, ramp.cutbacks, seconds)
+        return StrainFrames(t=targets, strain=np.stack(frames), xy=self.strain_sampler.xy,
+                            volume=self.strain_sampler.volume, newton_iterations=ramp.iterations,
+                            cutbacks=ramp.cutbacks, seconds=seconds)
+
+    def _reference_equilibrium(self, design: Design, guess: np.ndarray | None, newton: Callable[[], bool],
+                               on_reference: Callable[[], None] | None) -> bool:
+        """The unloaded equilibrium of a pre-stressed model into ``u_ref`` (zero otherwise), by
+        ``newton()`` from ``guess`` (None: the current state). Returns whether it converged."""
+        self.u_ref.x.array[:] = 0.0
+        if not self.prestressed:
+            return True
+        if guess is not None:
+            self.u.x.array[:] = guess
+        self._set_load(0.0, design)
+        if not newton():
+            return False
+        self.u_ref.x.array[:] = self.u.x.array
+        if on_reference is not None:
+            on_reference()
+        return True
+
+    def _ramp_to(self, target: float, ramp: _Ramp, design: Design, params: SkinParams) -> None:
+        """Increase the load fraction from ``ramp.t`` to ``target`` in increments of at most
+        ``ramp.step``: each started from the quadratic predictor, doubled after a success (up to
+        the first frame's step), halved after a failure (ConvergenceError after
+        ``solver.max_cutbacks``)."""
+        x = self.u.x.array
+        base_step = self.load_fractions()[0]
+        while ramp.t < target - 1e-12:
+            ramp.step = min(ramp.step, target - ramp.t)
+            t_new = ramp.t + ramp.step
+            saved = x.copy()
+            x[:] = extrapolate(t_new, [(ramp.t, saved), *ramp.history])
+            self._set_load(t_new, design)
+            converged, its, krylov = self._newton_escalating(ramp.policy)
+            if converged:
+                ramp.history = [(ramp.t, saved), *ramp.history[:1]]
+                ramp.t = t_new
+                ramp.iterations.append(its)
+                ramp.step = min(2 * ramp.step, base_step)
+                stale = krylov > self.config.solver.refactor_krylov
+                ramp.policy = Factorisation.FIRST_STEP if stale else Factorisation.REUSE
+                continue
+            x[:] = saved
+            ramp.policy = Factorisation.FIRST_STEP
+            ramp.cutbacks += 1
+            ramp.step /= 2
+            if ramp.cutbacks > self.config.solver.max_cutbacks:
+                raise ConvergenceError(f"Newton failed at load fraction t = {t_new:.4g} for {params} and {design} "
+                                       f"after {ramp.cutbacks - 1} cut-backs")
 
     def solve_frames(
         self,
@@ -504,19 +519,12 @@ class SkinModel:
         try:
             self.set_params(params)
             self.factorizations = 0
-            x = self.u.x.array
-            self.u_ref.x.array[:] = 0.0
-            if self.prestressed:
-                x[:] = 0.0 if reference_guess is None else reference_guess
-                self._set_load(0.0, design)
-                if not newton(factorisation)[0]:
-                    return False
-                self.u_ref.x.array[:] = x
-                if on_reference is not None:
-                    on_reference()
+            start = np.zeros_like(self.u.x.array) if reference_guess is None else reference_guess
+            if not self._reference_equilibrium(design, start, lambda: newton(factorisation)[0], on_reference):
+                return False
             policy = factorisation
             for t, guess in guesses:
-                x[:] = guess
+                self.u.x.array[:] = guess
                 self._set_load(t, design)
                 converged, krylov = newton(policy)
                 if not converged:

@@ -149,6 +149,20 @@ def emulator_start(emulator: Emulator, measurements: list[Measurement], seed: in
         return posterior.constrain(torch.as_tensor(find_mode(posterior, seed=seed)))[:5].numpy()
 
 
+def starting_point(forward: FEForward, data: Data, settings: CheckSettings, emulator: Emulator | None,
+                   measurements: list[Measurement]) -> tuple[np.ndarray, str]:
+    """(p,) calibration start (effects at their null values) and where it comes from: the given
+    skin parameters, else the emulator's posterior mode, else the best of a few spread points."""
+    start = forward.null.copy()
+    if settings.start is not None:
+        start[:5] = settings.start
+        return start, "given start"
+    if emulator is not None:
+        start[:5] = on_root(forward.comm, lambda: emulator_start(emulator, measurements))
+        return start, "emulator's posterior mode"
+    return spread_start(forward, data), "best of 5 spread points"
+
+
 def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -> np.ndarray:
     """(p,) the best of the box centre and n - 1 Latin-hypercube points of the skin box
     (effects at their null values), by whitened chi^2; points whose FE run fails are skipped."""
@@ -179,15 +193,7 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     forward = FEForward(config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir,
                         settings.gauge)
     data = Data.from_points(measurements, noise)
-    start = forward.null.copy()
-    if settings.start is not None:
-        start[:5] = settings.start
-        start_from = "given start"
-    elif emulator is not None:
-        start[:5] = on_root(comm, lambda: emulator_start(emulator, measurements))
-        start_from = "emulator's posterior mode"
-    else:
-        start, start_from = spread_start(forward, data), "best of 5 spread points"
+    start, start_from = starting_point(forward, data, settings, emulator, measurements)
     timings.setup_s = time.perf_counter() - t0
     half = config.mesh.membrane_size / 2
     band = settings.band or 2 * config.mesh.h_membrane
@@ -207,7 +213,7 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     next_round = None
-    if settings.add:
+    if settings.add:  # what is still missing with the added effects
         next_round = diagnose(model, versions[-1].calibration, data,
                               [c for c in settings.candidates if c not in settings.add], half, band, settings.confirm,
                               mesh_resolved=disc is None or disc.resolved, added=settings.add,
@@ -221,9 +227,7 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     return CheckResult(
         data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
         versions=versions, diagnosis=diagnosis, next_round=next_round, discretisation=disc,
-        noise_statement=noise_statement,
-        failures=forward.failures, start=start,
-        start_from=start_from,
+        noise_statement=noise_statement, failures=forward.failures, start=start, start_from=start_from,
         gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
                     f"(one per {settings.spacing:g} mm square)"),
         fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size, timings=timings,
