@@ -6,15 +6,17 @@ the posterior mode (found by L-BFGS from several seeded starts) with a seeded ji
 the Laplace covariance there (inverse Hessian of the potential) as its initial inverse mass
 matrix, adapts its step size and a dense mass matrix during warm-up, and returns its draws in
 the constrained parameters (theta in degrees). Starting from the Laplace metric instead of
-the identity, with a longer first adaptation window, halves the leapfrog steps of warm-up.
+the identity, and keeping it until a mass-matrix estimate has at least ``FIRST_WINDOW`` draws,
+halves the leapfrog steps of warm-up.
 
 Outputs (:func:`write_outputs`): ArviZ ``posterior.nc`` (groups posterior, sample_stats,
 log_likelihood, observed_data, prior, constant_data: :meth:`PosteriorSamples.inference_data`),
 ``summary.json`` (median, 95 % interval, R-hat, bulk/tail ESS, divergences, acceptance rates, the
 true value when known) and ``corner.png``.
 
-Sampler statistics come from Pyro's public interface only: divergences and the acceptance rate
-from ``MCMC.diagnostics()``, the step size from ``NUTS.step_size`` in the ``hook_fn`` Pyro calls
+The kernel is set up through Pyro's public interface only (:func:`_nuts_kernel`), and sampler
+statistics come from it too: divergences and the acceptance rate from ``MCMC.diagnostics()``,
+the step size from ``NUTS.step_size`` in the ``hook_fn`` Pyro calls
 after every iteration, the leapfrog steps by counting calls of our own potential (NUTS evaluates
 it once per leapfrog step), whether the chain moved by comparing successive draws in that hook.
 The Hamiltonian energy is not recorded: Pyro's NUTS does not expose the momentum.
@@ -97,33 +99,54 @@ def laplace_inverse_mass(posterior: SkinPosterior, mode: np.ndarray, floor: floa
     return (vectors / np.maximum(eigenvalues, floor)) @ vectors.T
 
 
-FIRST_WINDOW = 100  # warm-up steps of the first mass-matrix window (Stan's default: 25)
+FIRST_WINDOW = 100  # fewest warm-up draws a mass-matrix estimate may replace the Laplace metric with
 MAX_TREE_DEPTH, TARGET_ACCEPT = 8, 0.8
 
 
-def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray, potential_fn=None):
+def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray, potential_fn=None,
+                 first_window: int = FIRST_WINDOW):
     """Pyro's NUTS on ``potential_fn`` (default ``posterior.potential``) whose warm-up starts
-    from ``inverse_mass``.
+    from ``inverse_mass``, through Pyro's public interface only.
 
-    Starting from a good metric, the first mass-matrix window is made ``FIRST_WINDOW`` steps
-    long: the default 25-step window replaces the Laplace metric by a noisy 25-draw estimate
-    and costs ~40 % more leapfrog steps over a chain (measured on the small emulator).
+    The metric is Pyro's ``BlockMassMatrix`` (dense, one block) given to the kernel through its
+    public ``mass_matrix_adapter`` property; when the kernel is set up, the adapter's
+    ``configure`` sets the inverse mass matrix to ``inverse_mass``, and NUTS then finds its
+    initial step size for that metric. Pyro's warm-up windows are Stan's (75-step buffer, then
+    mass-matrix windows of 25, 50, 100, ... steps, 50-step end buffer) and cannot be set
+    publicly; instead a window's estimate replaces the metric only once it holds at least
+    ``first_window`` draws -- shorter windows keep the Laplace metric and their draws go into the
+    next window's estimate -- so a noisy 25-draw estimate never replaces the Laplace metric.
+    (Pyro still restarts its step-size adaptation at the end of such a window.)
     """
     from pyro.infer import NUTS
+    from pyro.infer.mcmc.adaptation import BlockMassMatrix
 
-    class StartedNUTS(NUTS):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            self._adapter._adapt_initial_window = FIRST_WINDOW
+    inverse_mass = np.asarray(inverse_mass, dtype=np.float64)
 
-        def _initialize_adapter(self):
-            super()._initialize_adapter()
-            self.mass_matrix_adapter.inverse_mass_matrix = {("u",): torch.as_tensor(inverse_mass)}
-            self._adapter.reset_step_size_adaptation(self._initial_params)  # for the new metric
+    class LaplaceStartedMassMatrix(BlockMassMatrix):
+        def configure(self, mass_matrix_shape, adapt_mass_matrix=True, options=None):
+            options = options or {}
+            super().configure(mass_matrix_shape, adapt_mass_matrix, options=options)
+            shapes = list(mass_matrix_shape.values())
+            if len(shapes) != 1 or tuple(shapes[0]) != inverse_mass.shape:
+                raise ValueError(f"a dense {inverse_mass.shape} metric cannot start mass matrices {shapes}")
+            self.inverse_mass_matrix = {sites: torch.as_tensor(inverse_mass, **options) for sites in mass_matrix_shape}
+            self.window_draws = 0
+
+        def update(self, z, z_grad):
+            super().update(z, z_grad)
+            self.window_draws += 1
+
+        def end_adaptation(self):
+            if self.window_draws >= first_window:  # else: keep the metric, keep accumulating draws
+                super().end_adaptation()
+                self.window_draws = 0
 
     potential_fn = posterior.potential if potential_fn is None else potential_fn
-    return StartedNUTS(potential_fn=potential_fn, adapt_step_size=True, adapt_mass_matrix=True,
-                       full_mass=True, target_accept_prob=TARGET_ACCEPT, max_tree_depth=MAX_TREE_DEPTH)
+    kernel = NUTS(potential_fn=potential_fn, adapt_step_size=True, adapt_mass_matrix=True, full_mass=True,
+                  target_accept_prob=TARGET_ACCEPT, max_tree_depth=MAX_TREE_DEPTH)
+    kernel.mass_matrix_adapter = LaplaceStartedMassMatrix()
+    return kernel
 
 
 class _ChainRecorder:

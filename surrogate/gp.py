@@ -5,16 +5,21 @@ One GP per PC weight, all on the same training rows. Inputs are the 7 model inpu
 
     k(x, x') = c * exp(-|(x - x') / l|^2 / 2) + w * [x == x']
 
-(ARD RBF times a constant, plus white noise), targets normalised to zero mean and unit variance.
+(ARD RBF times a constant, plus white noise), fitted to targets standardised to zero mean and
+unit variance. The standardisation is ours (:class:`StandardisedGP` keeps its mean and sd; the
+regressor is fitted with ``normalize_y=False`` on the standardised targets), which is the model
+scikit-learn fits with ``normalize_y=True`` -- same likelihood, hyper-parameters and predictions --
+without reading its private ``_y_train_mean``/``_y_train_std``.
 :class:`GPBank` evaluates all GPs at once in torch (float64) and returns the same predictive
-mean and variance as scikit-learn's ``predict(return_std=True)`` -- the variance includes the
-white-noise level -- with autograd gradients.
+mean and variance as :meth:`StandardisedGP.predict` (scikit-learn's ``predict(return_std=True)``
+in target units) -- the variance includes the white-noise level -- with autograd gradients.
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -31,23 +36,48 @@ def make_kernel(n_inputs: int):
     ) + WhiteKernel(1e-4, (1e-10, 1e-1))
 
 
-def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0) -> GaussianProcessRegressor:
+def standardisation(y: np.ndarray) -> tuple[float, float]:
+    """Mean and sd of targets ``y`` (n,); an sd below 10 machine epsilons (constant targets) is
+    replaced by 1, as scikit-learn's ``normalize_y=True`` does."""
+    mean, std = float(np.mean(y)), float(np.std(y))
+    return mean, (1.0 if std < 10 * np.finfo(float).eps else std)
+
+
+@dataclass
+class StandardisedGP:
+    """A scikit-learn GP fitted (``normalize_y=False``) to the standardised targets
+    ``(y - y_mean) / y_std``; :meth:`predict` answers in target units."""
+
+    gp: GaussianProcessRegressor
+    y_mean: float
+    y_std: float
+
+    def predict(self, x: np.ndarray, return_std: bool = False):
+        """Predictive mean (B,) at unit-box inputs x (B, d) and, if asked, sd (B,) (white noise included)."""
+        if not return_std:
+            return self.y_std * self.gp.predict(x) + self.y_mean
+        mean, std = self.gp.predict(x, return_std=True)
+        return self.y_std * mean + self.y_mean, self.y_std * std
+
+
+def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0) -> StandardisedGP:
     """Fit one GP: ``x`` (n, d) in the unit box, ``y`` (n,) one PC weight."""
+    y_mean, y_std = standardisation(y)
     gp = GaussianProcessRegressor(
         kernel=make_kernel(x.shape[1]),
-        normalize_y=True,
+        normalize_y=False,  # standardised here: the same model as normalize_y=True
         n_restarts_optimizer=restarts,
         random_state=seed,
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)  # hyper-parameters at a bound
-        gp.fit(x, y)
-    return gp
+        gp.fit(x, (y - y_mean) / y_std)
+    return StandardisedGP(gp, y_mean, y_std)
 
 
 def fit_gps(
     x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0, n_jobs: int = -1
-) -> list[GaussianProcessRegressor]:
+) -> list[StandardisedGP]:
     """Fit one GP per column of ``y`` (n, G), in parallel processes."""
     return Parallel(n_jobs=n_jobs)(
         delayed(fit_gp)(x, y[:, g], restarts, seed + g) for g in range(y.shape[1])
@@ -62,6 +92,15 @@ def kernel_parameters(gp: GaussianProcessRegressor) -> tuple[float, np.ndarray, 
         np.atleast_1d(params["k1__k2__length_scale"]).astype(float),
         float(params["k2__noise_level"]),
     )
+
+
+def _unnormalised(gp: GaussianProcessRegressor) -> StandardisedGP:
+    if gp.normalize_y:
+        raise ValueError(
+            "a GaussianProcessRegressor fitted with normalize_y=True keeps its target mean and sd in "
+            "private attributes; fit it with surrogate.gp.fit_gp (or normalize_y=False)"
+        )
+    return StandardisedGP(gp, 0.0, 1.0)
 
 
 class GPBank(torch.nn.Module):
@@ -84,22 +123,25 @@ class GPBank(torch.nn.Module):
         self.register_buffer("scaled_train_sq", (scaled**2).sum(-1), persistent=False)
 
     @classmethod
-    def from_sklearn(cls, gps: list[GaussianProcessRegressor]) -> GPBank:
-        x_train = gps[0].X_train_
-        for gp in gps[1:]:
-            if not np.array_equal(gp.X_train_, x_train):
+    def from_sklearn(cls, gps: list[StandardisedGP]) -> GPBank:
+        """Bank of fitted GPs (:func:`fit_gps`); a bare ``GaussianProcessRegressor`` is accepted
+        when fitted with ``normalize_y=False`` (target mean 0, sd 1)."""
+        gps = [gp if isinstance(gp, StandardisedGP) else _unnormalised(gp) for gp in gps]
+        x_train = gps[0].gp.X_train_
+        for g in gps[1:]:
+            if not np.array_equal(g.gp.X_train_, x_train):
                 raise ValueError("all GPs of a bank must share their training inputs")
-        kernels = [kernel_parameters(gp) for gp in gps]
+        kernels = [kernel_parameters(g.gp) for g in gps]
         return cls(
             {
                 "x_train": x_train,
                 "length_scale": np.stack([k[1] for k in kernels]),
                 "constant": np.array([k[0] for k in kernels]),
                 "noise": np.array([k[2] for k in kernels]),
-                "alpha": np.stack([gp.alpha_ for gp in gps]),
-                "chol": np.stack([gp.L_ for gp in gps]),
-                "y_mean": np.array([np.squeeze(gp._y_train_mean) for gp in gps]),
-                "y_std": np.array([np.squeeze(gp._y_train_std) for gp in gps]),
+                "alpha": np.stack([g.gp.alpha_ for g in gps]),
+                "chol": np.stack([g.gp.L_ for g in gps]),
+                "y_mean": np.array([g.y_mean for g in gps], dtype=float),
+                "y_std": np.array([g.y_std for g in gps], dtype=float),
             }
         )
 

@@ -160,9 +160,34 @@ def test_laplace_metric_is_the_gaussian_covariance_and_starts_the_warm_up():
     kernel.initial_params = {"u": torch.zeros(4, dtype=torch.float64)}
     kernel.setup(warmup_steps=500)
     np.testing.assert_allclose(kernel.inverse_mass_matrix[("u",)].numpy(), inverse_mass, rtol=1e-10)
-    # and adapts it in windows of 100 then 275 steps between the 75- and 50-step buffers
-    windows = [(w.start, w.end) for w in kernel._adapter.adaptation_schedule]
-    assert windows == [(0, 74), (75, 174), (175, 449), (450, 499)]
+
+
+def test_warm_up_keeps_the_laplace_metric_until_a_window_has_enough_draws():
+    """Pyro's (Stan's) mass-matrix windows of 500 warm-up iterations end after the 99th, 149th,
+    249th and 449th (25, 50, 100, 200 draws); estimates of fewer than FIRST_WINDOW = 100 draws are
+    not used, so the Laplace metric is replaced after the 249th (from 175 draws) and 449th only."""
+    from pyro.infer import MCMC
+
+    from inference.sampling import FIRST_WINDOW
+
+    assert FIRST_WINDOW == 100
+    precision = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 1.0]])
+    density = GaussianDensity(precision)
+    inverse_mass = laplace_inverse_mass(density, np.zeros(3))
+    metrics = []
+
+    def hook(kernel, samples, stage, i):
+        metrics.append(kernel.inverse_mass_matrix[("u",)].clone())
+
+    torch.manual_seed(0)
+    kernel = _nuts_kernel(density, inverse_mass, density.potential)
+    MCMC(kernel, num_samples=1, warmup_steps=500, initial_params={"u": torch.zeros(3, dtype=torch.float64)},
+         disable_progbar=True, hook_fn=hook).run()
+    changed = [i for i in range(1, len(metrics)) if not torch.equal(metrics[i], metrics[i - 1])]
+    assert changed == [248, 448]  # 0-based iterations
+    np.testing.assert_array_equal(metrics[247].numpy(), inverse_mass)
+    # and the estimates that replace it are of the posterior covariance
+    np.testing.assert_allclose(metrics[-1].numpy(), np.linalg.inv(precision), rtol=0.5, atol=0.1)
 
 
 def test_held_out_material_is_identified(emulator, data, tmp_path):

@@ -3,15 +3,17 @@ the emulator directory on a synthetic emulator."""
 
 import json
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from sklearn.decomposition import PCA
+from sklearn.gaussian_process import GaussianProcessRegressor
 
 from surrogate.emulator import Emulator, EmulatorProvenance, HeldOutScores
-from surrogate.gp import GPBank, fit_gps
+from surrogate.gp import GPBank, StandardisedGP, fit_gps, make_kernel
 from surrogate.pca import StrainPCA
 
 
@@ -51,12 +53,60 @@ def test_pca_refuses_nan():
 
 
 @pytest.fixture(scope="module")
-def fitted_gps():
+def gp_data():
+    """Training inputs (80, 7) and two targets, one far from zero mean and unit variance."""
     rng = np.random.default_rng(3)
     x = rng.uniform(size=(80, 7))
     y = np.column_stack([np.sin(3 * x[:, 0]) + x[:, 4] ** 2, np.cos(2 * x[:, 1]) * x[:, 5]])
     y += 1e-3 * rng.normal(size=y.shape)
-    return fit_gps(x, y, restarts=1, n_jobs=1)
+    y[:, 1] = 5 + 40 * y[:, 1]  # standardised, the same target as before; in its units far from N(0, 1)
+    return x, y
+
+
+@pytest.fixture(scope="module")
+def fitted_gps(gp_data):
+    return fit_gps(*gp_data, restarts=1, n_jobs=1)
+
+
+def _sklearn_normalize_y(x, y, **options):
+    gp = GaussianProcessRegressor(normalize_y=True, **options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # hyper-parameters at a bound
+        return gp.fit(x, y)
+
+
+def test_own_standardisation_is_sklearns_normalize_y_model(gp_data, fitted_gps):
+    """Targets standardised by us + normalize_y=False = scikit-learn's normalize_y=True: the same
+    hyper-parameters from the same seeded fit, and the same predictive mean and variance (in
+    target units) as a normalize_y=True regressor with those hyper-parameters fixed."""
+    x, y = gp_data
+    x_new = np.random.default_rng(4).uniform(-0.1, 1.1, size=(50, 7))
+    bank = GPBank.from_sklearn(fitted_gps)
+    bank_mean, bank_var = (t.numpy() for t in bank(torch.as_tensor(x_new)))
+    for g, fitted in enumerate(fitted_gps):
+        refit = _sklearn_normalize_y(x, y[:, g], kernel=make_kernel(7), n_restarts_optimizer=1, random_state=g)
+        np.testing.assert_allclose(fitted.gp.kernel_.theta, refit.kernel_.theta, rtol=1e-10, atol=0)
+        fixed = _sklearn_normalize_y(x, y[:, g], kernel=fitted.gp.kernel_, optimizer=None)
+        m_ref, s_ref = fixed.predict(x_new, return_std=True)
+        m, s = fitted.predict(x_new, return_std=True)
+        np.testing.assert_allclose(m, m_ref, rtol=1e-10, atol=0)
+        np.testing.assert_allclose(s**2, s_ref**2, rtol=1e-10, atol=0)
+        np.testing.assert_allclose(fitted.predict(x_new), m_ref, rtol=1e-10, atol=0)
+        # the torch bank (its float64 distances sum in another order: ill-conditioned, looser)
+        np.testing.assert_allclose(bank_mean[:, g], m_ref, rtol=0, atol=1e-8 * np.abs(m_ref).max())
+        np.testing.assert_allclose(bank_var[:, g], s_ref**2, rtol=0, atol=1e-8 * (s_ref**2).max())
+
+
+def test_bank_of_bare_regressors_needs_unnormalised_targets(gp_data, fitted_gps):
+    x, y = gp_data
+    bare = _sklearn_normalize_y(x, y[:, 0], kernel=fitted_gps[0].gp.kernel_, optimizer=None)
+    with pytest.raises(ValueError, match="normalize_y=True"):
+        GPBank.from_sklearn([bare])
+    raw = [fitted.gp for fitted in fitted_gps]  # normalize_y=False: mean 0, sd 1
+    bank = GPBank.from_sklearn(raw)
+    x_new = torch.as_tensor(np.random.default_rng(7).uniform(size=(5, 7)))
+    mean = np.column_stack([gp.predict(x_new.numpy()) for gp in raw])
+    np.testing.assert_allclose(bank(x_new, return_var=False).numpy(), mean, rtol=0, atol=1e-8 * np.abs(mean).max())
 
 
 def test_torch_bank_matches_sklearn_mean_and_variance(fitted_gps):
@@ -132,6 +182,26 @@ def test_provenance_round_trips_through_save_and_load(tiny_emulator, tmp_path, v
     assert (loaded.save(tmp_path / "again") / "meta.json").read_text() == text
     np.testing.assert_array_equal(loaded.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0),
                                   tiny_emulator.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0))
+
+
+@pytest.mark.parametrize("fitted_by", ["standardised", "normalize_y"])
+def test_reference_regressors_round_trip_in_target_units(tiny_emulator, fitted_gps, gp_data, tmp_path, fitted_by):
+    """``sklearn_gps.joblib`` holds :class:`StandardisedGP` (this version) or scikit-learn
+    normalize_y=True regressors (earlier versions); both load and predict in target units."""
+    x, y = gp_data
+    if fitted_by == "standardised":
+        tiny_emulator.sklearn_gps = fitted_gps
+    else:
+        tiny_emulator.sklearn_gps = [_sklearn_normalize_y(x, y[:, g], kernel=f.gp.kernel_, optimizer=None)
+                                     for g, f in enumerate(fitted_gps)]
+    loaded = Emulator.load(tiny_emulator.save(tmp_path / "emu"))
+    assert all(isinstance(gp, StandardisedGP) == (fitted_by == "standardised") for gp in loaded.sklearn_gps)
+    x_new = np.random.default_rng(8).uniform(size=(10, 7))
+    mean, var = (t.numpy() for t in loaded.gps(torch.as_tensor(x_new)))
+    for g, gp in enumerate(loaded.sklearn_gps):
+        m, s = gp.predict(x_new, return_std=True)
+        np.testing.assert_allclose(m, mean[:, g], rtol=0, atol=1e-8 * np.abs(m).max())
+        np.testing.assert_allclose(s**2, var[:, g], rtol=0, atol=1e-8 * (s**2).max())
 
 
 def test_emulators_fitted_before_block_half_length_was_recorded_still_load(tiny_emulator, tmp_path):
