@@ -111,10 +111,9 @@ def data_fields(config, case: str, points, mesh_dir, comm, path: Path) -> np.nda
 
 def box_centre(config: str) -> list[float]:
     """Centre of the checked configuration's prior box of the skin parameters."""
-    from skinfem.config import PARAM_NAMES, load_config
+    from skinfem.config import load_config
 
-    bounds = load_config(config).sweep.bounds
-    return [float(np.mean(bounds[name])) for name in PARAM_NAMES]
+    return load_config(config).sweep.box.mean(axis=1).tolist()
 
 
 def verdict_class(diagnosis: dict, structured: bool) -> str:

@@ -48,7 +48,7 @@ def main() -> None:
     import skinfem.model  # noqa: F401  (PETSc initialises collectively: import on every rank first)
     from inference.forward import FEForward, PointSet
     from inference.synthetic import dic_points
-    from skinfem.config import PARAM_NAMES, load_config
+    from skinfem.config import load_config
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default=str(HERE / "configs" / "small_q2.toml"))
@@ -60,7 +60,7 @@ def main() -> None:
     config = load_config(args.config)
     xy = dic_points(18.0, 1.0, np.random.default_rng(0))
     observations = [PointSet(np.array(alpha), 1.0, xy) for alpha in DESIGNS]
-    bounds = np.array([config.sweep.bounds[name] for name in PARAM_NAMES])
+    bounds = config.sweep.box
     forward = FEForward(config, observations, bounds, args.mesh_dir, 2, comm)
     x = forward.null.copy()
     x[:5] = CALIBRATED

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -24,8 +25,49 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _ints(text: str | None) -> list[int] | None:
-    return None if text is None else [int(v) for v in text.replace(",", " ").split()]
+def _ints(text: str | None, option: str) -> list[int] | None:
+    """The indices of a list option such as ``--designs '0,2,4'`` (None if not given)."""
+    if text is None:
+        return None
+    try:
+        return [int(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise ValueError(f"{option} must be integers such as '2' or '0,2,4', got '{text}'") from None
+
+
+def _check_indices(option: str, values: list[int] | None, size: int, path: Path, negative: bool = True) -> None:
+    """Refuse indices outside a dataset's ``size`` entries (negative ones count from the end if allowed)."""
+    for v in values or []:
+        if not (-size if negative else 0) <= v < size:
+            raise ValueError(f"{option} {v} is not in [0, {size}) of {path}")
+
+
+def check_sampler(args) -> None:
+    """Refuse sampler options that cannot give a posterior (before any input is read)."""
+    for option, value, least in (("--chains", args.chains, 1), ("--draws", args.draws, 1),
+                                 ("--warmup", args.warmup, 0), ("--jobs", args.jobs, 1)):
+        if value < least:
+            raise ValueError(f"{option} must be >= {least}, got {value}")
+
+
+def check_same_mesh(data, emulator) -> None:
+    """Refuse a dataset simulated on another mesh than the emulator's training data (the PC basis
+    belongs to that mesh's cells, even when the cell count is the same)."""
+    if data.mesh_sha256 != emulator.provenance.mesh_sha256 or data.xy.shape != emulator.xy.shape:
+        raise ValueError(f"'{data.path}' was simulated on another mesh than the emulator's dataset "
+                         f"'{emulator.provenance.dataset}' (mesh sha256 {data.mesh_sha256[:12]}... vs "
+                         f"{emulator.provenance.mesh_sha256[:12]}...)")
+
+
+def check_strain_scale(m, membrane_half: float) -> None:
+    """Refuse a measurement whose strains are far larger than its design imposes: strains in percent."""
+    from inference.dic_import import RATIO_RANGE, assess_plausibility
+    from inference.observations import MeasurementError
+
+    ratio = assess_plausibility(m.xy, m.strain, m.alpha, m.t, membrane_half).ratio
+    if ratio > RATIO_RANGE[1]:
+        raise MeasurementError(f"{m.path}: the mean strain under the membrane is {ratio:.3g}x the design's "
+                               "ln(1 + t·alpha): strains in percent? a measurement file holds fractions")
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
@@ -182,20 +224,28 @@ def print_summary(summary: dict, out: Path) -> None:
 
 
 def cmd_infer(args) -> None:
-    from inference.observations import from_dataset, from_measurements
+    from inference.observations import from_dataset, map_to_cells, read_measurement
     from inference.studies import posterior_of
+    from skinfem.config import config_from_toml
     from skinfem.io import StrainDataset
     from skinfem.outputs import check_output
     from surrogate.emulator import Emulator
 
     check_output(args.out, args.force, directory=True)
+    check_sampler(args)
     emulator = Emulator.load(args.emulator)
     if args.data is not None:
         if args.material is None:
             raise ValueError("--data needs --material")
-        obs = from_dataset(StrainDataset.open(args.data), args.material, _ints(args.designs), _ints(args.frames))
+        data = StrainDataset.open(args.data)
+        check_same_mesh(data, emulator)
+        obs = from_dataset(data, args.material, _ints(args.designs, "--designs"), _ints(args.frames, "--frames"))
     else:
-        obs = from_measurements(args.measurement, emulator.xy, emulator.provenance.block_half_length)
+        membrane_half = config_from_toml(emulator.provenance.dataset_config).mesh.membrane_size / 2
+        measurements = [read_measurement(p, emulator.provenance.block_half_length) for p in args.measurement]
+        for m in measurements:
+            check_strain_scale(m, membrane_half)
+        obs = [map_to_cells(m, emulator.xy) for m in measurements]
     summary = posterior_of(emulator, obs, settings_of(args), args.out, noise=args.noise)
     print_summary(summary, args.out)
 
@@ -206,8 +256,18 @@ def cmd_study(args) -> None:
     from surrogate.emulator import Emulator
 
     check_output(args.out, args.force, directory=True, resume=args.resume)
+    check_sampler(args)
     data = StrainDataset.open(args.data)
     emulator = None if args.study == "noise" else Emulator.load(args.emulator)
+    if emulator is not None:
+        check_same_mesh(data, emulator)
+    n_mat, n_des, n_frames, _ = data.shape
+    _check_indices("--materials", _ints(args.materials, "--materials"), n_mat, args.data, negative=False)
+    if args.study == "test-set":
+        _check_indices("--designs", _ints(args.designs, "--designs"), n_des, args.data)
+        _check_indices("--frames", _ints(args.frames, "--frames"), n_frames, args.data)
+    if args.study == "noise":
+        _check_noise_study(args, n_des)
     designs = _setups_designs(args, data) if args.study == "setups" else None
     if args.force:  # the inputs are read and checked: start over
         remove_output(args.out)
@@ -219,19 +279,32 @@ def cmd_study(args) -> None:
         _setups(args, emulator, data, designs)
 
 
+def _check_noise_study(args, n_designs: int) -> None:
+    """Refuse the options of ``study noise`` that are out of range."""
+    _check_indices("--designs", [args.designs], n_designs, args.data, negative=False)
+    for option, values in (("--lengths", args.lengths), ("--levels", args.levels)):
+        bad = [v for v in values if not (math.isfinite(v) and v > 0)]
+        if bad:
+            raise ValueError(f"{option} must be positive numbers, got {bad[0]}")
+    if not 0 < args.gp_fraction <= 1:
+        raise ValueError(f"--gp-fraction must be in (0, 1], got {args.gp_fraction}")
+    if args.restarts < 0:
+        raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+
+
 def _noise_study(args, data) -> None:
     from inference.studies import noise_study
 
     noise_study(data, args.out, args.designs, settings_of(args), tuple(args.lengths), tuple(args.levels),
-                _ints(args.materials), {"gp_fraction": args.gp_fraction, "restarts": args.restarts})
+                _ints(args.materials, "--materials"), {"gp_fraction": args.gp_fraction, "restarts": args.restarts})
     print(f"wrote {args.out}/README.md")
 
 
 def _test_set(args, emulator, data) -> None:
     from inference.studies import test_set_study
 
-    res = test_set_study(emulator, data, _ints(args.designs), _ints(args.frames), settings_of(args), args.out,
-                         _ints(args.materials))
+    res = test_set_study(emulator, data, _ints(args.designs, "--designs"), _ints(args.frames, "--frames"),
+                         settings_of(args), args.out, _ints(args.materials, "--materials"))
     print(json.dumps(res, indent=2))
     print(f"wrote {args.out}/study.json and accuracy.png")
 
@@ -240,7 +313,7 @@ def _setups_designs(args, data) -> list[int]:
     """The single design, then the multi-membrane setup's others, checked before any study runs."""
     from inference.studies import spread_designs
 
-    others = _ints(args.others) if args.others else spread_designs(data.designs, args.designs, args.n)[1:]
+    others = _ints(args.others, "--others") if args.others else spread_designs(data.designs, args.designs, args.n)[1:]
     bad = [j for j in [args.designs, *others] if not 0 <= j < len(data.designs)]
     if bad:
         raise ValueError(f"design {bad[0]} is not in [0, {len(data.designs)}) of {args.data}")
@@ -258,7 +331,7 @@ def _setups(args, emulator, data, designs: list[int]) -> None:
     }
     results = {
         label: test_set_study(emulator, data, d, f, settings_of(args), args.out / label.replace(" ", "_"),
-                              _ints(args.materials), label)
+                              _ints(args.materials, "--materials"), label)
         for label, (d, f) in setups.items()
     }
     setups_plot(results, args.out / "setups.png")
@@ -272,6 +345,12 @@ def cmd_noise(args) -> None:
     from skinfem.outputs import check_output
 
     check_output(args.out, args.force)
+    if args.out.suffix not in (".h5", ".hdf5"):
+        raise ValueError(f"--out must end in .h5, got '{args.out}'")
+    if not (math.isfinite(args.length) and args.length > 0):
+        raise ValueError(f"--length: the noise length scale must be > 0 mm, got {args.length}")
+    if not 0 <= args.level < 1:
+        raise ValueError(f"--level: the noise level must be a fraction in [0, 1), got {args.level}")
     data = StrainDataset.open(args.data)
     add_noise(data, args.out, args.length, args.level, args.seed)
     print(f"added noise (length {args.length} mm, level {args.level:.0%}, seed {args.seed}) to "
@@ -290,6 +369,7 @@ def check_inputs(args):
     from surrogate.emulator import Emulator
 
     check_output(args.out, args.force, directory=True, resume=args.resume)
+    _check_check_options(args)
     settings = CheckSettings(candidates=args.candidates or list(EFFECTS), add=args.add, increments=args.increments,
                              confirm=args.confirm, gauge=StrainGauge(args.dic_window), spacing=args.spacing,
                              discretisation=not args.no_discretisation, refinement=args.refine)
@@ -301,7 +381,7 @@ def check_inputs(args):
     else:
         raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
     bounds = (emulator.param_bounds if emulator is not None
-              else np.array([config.sweep.bounds[n] for n in PARAM_NAMES]))
+              else config.sweep.box)
     if args.start is not None:
         outside = [f"{n} = {v:g} not in [{lo:g}, {hi:g}]" for n, v, (lo, hi) in zip(PARAM_NAMES, args.start, bounds)
                    if not lo <= v <= hi]
@@ -313,6 +393,7 @@ def check_inputs(args):
     measurements = [thin(read_measurement(p, config.mesh.length / 2), args.spacing) for p in args.measurement]
     for m in measurements:
         check_field_of_view(m, half, settings.band or 2 * config.mesh.h_membrane, n_params)
+        check_strain_scale(m, half)
     if args.noise_sd is not None:
         sd = np.array(args.noise_sd)
     elif all(m.sd is not None for m in measurements):
@@ -321,6 +402,18 @@ def check_inputs(args):
         raise ValueError("the measurements have no sd_exx, sd_eyy, sd_exy columns: give --noise-sd XX YY XY")
     noise = NoiseModel(sd, args.noise_length, args.noise_nugget)
     return settings, config, bounds, emulator, measurements, noise
+
+
+def _check_check_options(args) -> None:
+    """Refuse the numeric options of ``skinid check`` that its settings and noise model do not test."""
+    if not (math.isfinite(args.noise_length) and args.noise_length >= 0):
+        raise ValueError(f"--noise-length must be a number >= 0 mm, got {args.noise_length}")
+    if not (math.isfinite(args.noise_nugget) and 0 <= args.noise_nugget <= 1):
+        raise ValueError(f"--noise-nugget must be in [0, 1], got {args.noise_nugget}")
+    if args.increments is not None and args.increments < 1:
+        raise ValueError(f"--increments must be >= 1, got {args.increments}")
+    if args.confirm < 0:
+        raise ValueError(f"--confirm must be >= 0, got {args.confirm}")
 
 
 def cmd_check(args) -> None:

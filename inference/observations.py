@@ -23,6 +23,7 @@ from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import cKDTree
 
 from skinfem.io import STATUS_OK, StrainDataset
+from skinfem.params import Design
 
 STRAIN_MEASURES = ("log", "green", "engineering")
 COLUMNS = ("x", "y", "exx", "eyy", "exy")
@@ -127,6 +128,10 @@ class Measurement:
 def read_measurement(path: Path | str, half_length: float | None = None) -> Measurement:
     """Read and check a measurement CSV (design.md §4); strains converted to log strain.
 
+    A UTF-8 byte-order mark is ignored. Refused, besides a malformed file: a header design that
+    is not a valid membrane design (finite, |alpha| < 0.5), a point given twice with other
+    values, and points that all lie on one line.
+
     Args:
         half_length: if given, points with |x| or |y| above it (outside the block) are refused.
 
@@ -134,9 +139,14 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
         MeasurementError: naming the file, the line and the problem.
     """
     path = Path(path)
+    if path.is_dir():
+        raise MeasurementError(f"measurement file '{path}' is a folder")
     if not path.is_file():
         raise MeasurementError(f"measurement file '{path}' does not exist")
-    lines = path.read_text().splitlines()
+    try:
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a BOM (spreadsheet exports) is dropped
+    except UnicodeDecodeError:
+        raise MeasurementError(f"measurement file '{path}' is not UTF-8 text (a CSV file)") from None
 
     def fail(lineno: int, problem: str):
         raise MeasurementError(f"{path}:{lineno}: {problem}")
@@ -158,6 +168,10 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
         t = float(meta["t"])
     except ValueError as exc:
         fail(lineno, f"bad header value ({exc})")
+    try:
+        Design(*alpha)
+    except ValueError as exc:
+        fail(lineno, f"bad design in the header: {exc}")
     if not 0 < t <= 1:
         fail(lineno, f"t = {t} must be in (0, 1]")
     measure = meta.get("strain", "log")
@@ -170,7 +184,7 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
     has_sd = all(c in columns for c in SD_COLUMNS)
     wanted = list(COLUMNS) + (list(SD_COLUMNS) if has_sd else [])
     idx = [columns.index(c) for c in wanted]
-    rows = []
+    rows, numbers = [], []
     for n, line in enumerate(lines[lineno:], start=lineno + 1):
         if not line.strip() or line.startswith("#"):
             continue
@@ -188,11 +202,30 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
         if has_sd and min(values[5:]) <= 0:
             fail(n, "standard deviations must be > 0")
         rows.append(values)
+        numbers.append(n)
     if len(rows) < 3:
         fail(len(lines), f"only {len(rows)} data rows; need at least 3")
     rows = np.array(rows)
-    strain = to_log_strain(rows[:, 2], rows[:, 3], rows[:, 4], measure)
+    _check_points(rows, numbers, fail)
+    try:
+        strain = to_log_strain(rows[:, 2], rows[:, 3], rows[:, 4], measure)
+    except ValueError as exc:
+        raise MeasurementError(f"{path}: {exc} (strains in percent? the file must hold fractions)") from None
     return Measurement(path, alpha, t, rows[:, :2], strain, rows[:, 5:8] if has_sd else None)
+
+
+def _check_points(rows: np.ndarray, numbers: list[int], fail) -> None:
+    """Refuse a point given twice with different values, and points that all lie on one line."""
+    _, first, inverse = np.unique(rows[:, :2], axis=0, return_index=True, return_inverse=True)
+    earlier = first[inverse.ravel()]  # the first row of each row's point
+    conflicts = np.flatnonzero(np.any(rows != rows[earlier], axis=1))
+    if len(conflicts):
+        k = conflicts[0]
+        fail(numbers[k], f"point ({rows[k, 0]:g}, {rows[k, 1]:g}) is also on line {numbers[earlier[k]]}, "
+                         "with other values")
+    s = np.linalg.svd(rows[:, :2] - rows[:, :2].mean(axis=0), compute_uv=False)
+    if s[1] <= 1e-9 * s[0]:
+        fail(numbers[-1], f"the {len(rows)} points lie on one line: a strain map needs a 2-D field")
 
 
 def write_measurement(path: Path | str, xy: np.ndarray, strain: np.ndarray, alpha, t: float,

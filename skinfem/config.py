@@ -17,6 +17,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 PRESET_DIR = Path(__file__).parent / "presets"
 PARAM_NAMES = ("mu", "k1", "k2", "kappa", "theta")
 PARAM_UNITS = ("MPa", "MPa", "-", "-", "deg")
@@ -218,6 +220,11 @@ class SweepConfig:
     bounds: dict[str, list[float]] = field(default_factory=_default_bounds)
     designs: list[list[float]] = field(default_factory=_paper_designs)
 
+    @property
+    def box(self) -> np.ndarray:
+        """(5, 2) [low, high] of each skin parameter, in PARAM_NAMES order (units as ``bounds``)."""
+        return np.array([self.bounds[name] for name in PARAM_NAMES], dtype=float)
+
     def validate(self, prefix: str = "sweep") -> None:
         _check(self.n_materials >= 1, f"{prefix}.n_materials", "must be >= 1")
         _check(
@@ -237,6 +244,8 @@ class SweepConfig:
                 key,
                 "must be a pair [low, high]",
             )
+            _check(all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pair),
+                   key, f"must be two finite numbers [low, high], got {pair!r}")
             low, high = float(pair[0]), float(pair[1])
             _check(low <= high, key, f"low {low} > high {high}")
         from skinfem.params import Design, SkinParams  # local: params imports this module
@@ -344,6 +353,7 @@ def _build_section(section: str, values: dict[str, Any]):
                 dotted,
                 f"expected a number, got {value!r}",
             )
+            _check(math.isfinite(value), dotted, f"must be a finite number, got {value!r}")
             value = float(value)
         elif expected is int:
             _check(
@@ -394,10 +404,14 @@ def load_config(source: str | Path) -> Config:
                 f"config '{source}': no such file and no such preset (presets: {', '.join(preset_names())})"
             )
         path = PRESET_DIR / f"{source}.toml"
+    if path.is_dir():
+        raise ConfigError(f"config '{path}' is a folder, not a TOML file")
     if not path.is_file():
         raise ConfigError(f"config file '{path}' does not exist")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"config file '{path}' is not UTF-8 text (TOML)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file '{path}': invalid TOML: {exc}") from None
     return config_from_dict(data, name=path.stem)

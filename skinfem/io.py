@@ -39,6 +39,9 @@ from skinfem.outputs import remove_output
 STATUS_NOT_RUN, STATUS_OK, STATUS_FAILED = 0, 1, -1
 FORMAT_VERSION = 1
 MESSAGE_BYTES = 240  # fixed-length messages keep the file layout static
+DATASET_MEMBERS = ("params", "designs", "t", "cells/xy", "cells/volume", "strain", "status", "messages",
+                   "newton_iterations", "seconds", "split")
+DATASET_ATTRIBUTES = ("config", "versions", "mesh_sha256", "created")
 
 
 def package_versions() -> dict[str, str]:
@@ -208,6 +211,8 @@ class StrainDataset:
             FileNotFoundError / ValueError: missing file or not a skinid dataset.
         """
         path = Path(path)
+        if path.is_dir():
+            raise ValueError(f"'{path}' is a folder, not a dataset (.h5)")
         if not path.is_file():
             raise FileNotFoundError(f"dataset '{path}' does not exist")
         try:
@@ -222,6 +227,10 @@ class StrainDataset:
                     f"'{path}' has dataset format {f.attrs['format_version']}, "
                     f"this skinid reads format {FORMAT_VERSION}"
                 )
+            missing = [f"/{k}" for k in DATASET_MEMBERS if k not in f] + [
+                f"attribute '{k}'" for k in DATASET_ATTRIBUTES if k not in f.attrs]
+            if missing:
+                raise ValueError(f"'{path}' is not a complete skinid dataset: it has no {missing[0]}")
             p = f["params"]
             return cls(
                 path=path,

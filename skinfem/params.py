@@ -14,6 +14,7 @@ import numpy as np
 from skinfem.config import PARAM_NAMES
 
 MAX_ALPHA = 0.5
+MAX_THETA = 180.0  # deg: a fiber direction repeats every 180 deg
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,8 @@ class SkinParams:
             raise ValueError(f"k2 must be > 0, got {self.k2}")
         if not 0.0 <= self.kappa <= 1.0 / 3.0:
             raise ValueError(f"kappa must be in [0, 1/3], got {self.kappa}")
+        if not -MAX_THETA <= self.theta <= MAX_THETA:
+            raise ValueError(f"theta must be in [-{MAX_THETA:g}, {MAX_THETA:g}] deg, got {self.theta}")
 
     @property
     def theta_rad(self) -> float:

@@ -24,7 +24,7 @@ import numpy as np
 from mpi4py import MPI
 from scipy.stats import qmc
 
-from skinfem.config import PARAM_NAMES, Config
+from skinfem.config import Config
 from skinfem.io import (
     STATUS_FAILED,
     STATUS_NOT_RUN,
@@ -80,7 +80,7 @@ class SweepPlan:
     @classmethod
     def from_config(cls, config: Config) -> SweepPlan:
         sweep = config.sweep
-        bounds = np.array([sweep.bounds[name] for name in PARAM_NAMES], dtype=float)
+        bounds = sweep.box
         return cls(
             params=latin_hypercube(bounds, sweep.n_materials, sweep.seed),
             designs=np.array(sweep.designs, dtype=float).reshape(-1, 2),

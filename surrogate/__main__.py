@@ -43,6 +43,20 @@ def print_report(report: dict, directory: Path) -> None:
     print(f"wrote {directory / 'validation.json'} and {directory / 'validation.png'}")
 
 
+def check_fit_options(args) -> None:
+    """Refuse fitting options out of range (before the dataset is read)."""
+    if args.n_components is not None and args.n_components < 1:
+        raise ValueError(f"--n-components must be >= 1, got {args.n_components}")
+    if not 0 < args.variance < 1:
+        raise ValueError(f"--variance must be in (0, 1), got {args.variance}")
+    if not 0 < args.gp_fraction <= 1:
+        raise ValueError(f"--gp-fraction must be in (0, 1], got {args.gp_fraction}")
+    if args.max_gp_rows is not None and args.max_gp_rows < 2:
+        raise ValueError(f"--max-gp-rows must be >= 2, got {args.max_gp_rows}")
+    if args.restarts < 0:
+        raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+
+
 def cmd_fit(args) -> None:
     """Fit, then write the emulator directory (with its validation) under a temporary name."""
     from skinfem.io import StrainDataset
@@ -51,12 +65,13 @@ def cmd_fit(args) -> None:
     from surrogate.validation import plot_explained_variance, validate_directory
 
     check_output(args.out, args.force, directory=True)
+    check_fit_options(args)
     data = StrainDataset.open(args.data)
     start = time.perf_counter()
     emulator = fit_emulator(
         data,
         components=tuple(args.components),
-        n_components=args.n_components or args.variance,
+        n_components=args.variance if args.n_components is None else args.n_components,
         gp_fraction=args.gp_fraction,
         max_gp_rows=args.max_gp_rows,
         restarts=args.restarts,

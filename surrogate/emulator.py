@@ -12,7 +12,10 @@ Emulator directory (written by :meth:`Emulator.save`):
                 time, versions, validation scores)
     pca.npz     per component: mean, scale, components, explained_variance_ratio; cell xy, volume
     gp.npz      the GP bank (see :class:`surrogate.gp.GPBank`)
-    sklearn_gps.joblib   the fitted scikit-learn regressors (reference implementation)
+    sklearn_gps.joblib   the fitted scikit-learn regressors (reference implementation):
+                :class:`surrogate.gp.StandardisedGP` (files of earlier versions: scikit-learn
+                ``normalize_y=True`` regressors, the same model); both ``predict(x, return_std)``
+                in target units
 """
 
 from __future__ import annotations
@@ -209,7 +212,7 @@ class Emulator:
     xy: np.ndarray  # (n_cells, 2) skin-cell centroids [mm]
     volume: np.ndarray  # (n_cells,) [mm^3]
     provenance: EmulatorProvenance
-    sklearn_gps: list | None = None
+    sklearn_gps: list | None = None  # StandardisedGP (or, when loaded from old files, normalize_y=True GPs)
 
     # -- sizes ---------------------------------------------------------------------------
     @property
@@ -310,8 +313,11 @@ class Emulator:
         meta_path = directory / "meta.json"
         if not meta_path.is_file():
             raise FileNotFoundError(f"'{directory}' is not an emulator directory (no meta.json)")
-        meta = json.loads(meta_path.read_text())
-        if meta.get("format") != FORMAT:
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"'{meta_path}' is not valid JSON ({exc}): {REFIT}") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise ValueError(f"'{directory}' is not a skinid emulator")
         if meta.get("format_version") != FORMAT_VERSION:
             raise ValueError(
@@ -321,23 +327,28 @@ class Emulator:
             )
         try:
             provenance = EmulatorProvenance.from_json(meta)
+            lower, upper, components = np.array(meta["lower"]), np.array(meta["upper"]), meta["components"]
         except KeyError as exc:
             raise ValueError(f"'{meta_path}' has no entry {exc}: {REFIT}") from exc
         pcas, xy, volume = _read_npz(
             directory / "pca.npz",
-            lambda a: ({c: StrainPCA.from_arrays(a, f"{c}_") for c in meta["components"]}, a["xy"], a["volume"]),
+            lambda a: ({c: StrainPCA.from_arrays(a, f"{c}_") for c in components}, a["xy"], a["volume"]),
         )
         gps = _read_npz(directory / "gp.npz", GPBank).to(device)
         sk_path = directory / "sklearn_gps.joblib"
+        try:
+            sklearn_gps = joblib.load(sk_path) if sk_path.exists() else None
+        except Exception as exc:  # a truncated or garbage pickle fails in many ways
+            raise ValueError(f"'{sk_path}' cannot be read ({type(exc).__name__}: {exc}): {REFIT}") from exc
         return cls(
             pcas=pcas,
             gps=gps,
-            lower=np.array(meta["lower"]),
-            upper=np.array(meta["upper"]),
+            lower=lower,
+            upper=upper,
             xy=xy,
             volume=volume,
             provenance=provenance,
-            sklearn_gps=joblib.load(sk_path) if sk_path.exists() else None,
+            sklearn_gps=sklearn_gps,
         )
 
 

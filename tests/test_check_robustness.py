@@ -139,7 +139,7 @@ def corner_forward(config, mesh_dir, alpha):
 
     from inference.forward import FEForward, PointSet
 
-    bounds = np.array([config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    bounds = config.sweep.box
     g = np.linspace(-18, 18, 13)
     obs = [PointSet(np.array(alpha), 1.0, np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
     return FEForward(config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, continuation=False)

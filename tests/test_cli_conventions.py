@@ -2,12 +2,14 @@
 
 - ``skinid --version`` prints the installed package's version;
 - every option's help shows its default, and an option has one spelling in every command;
-- an existing output is refused before any computing (exit 2, one line, its bytes unchanged)
-  unless ``--force`` (or ``--resume``, where the output keeps finished work) is given, and so
-  is an output whose folder cannot be written; ``--force`` replaces it whole;
-- a sweep holds ``<out>.lock`` while it runs: a second sweep is refused, a stale lock is
-  named with the command that removes it, and the lock is gone when the sweep ends;
-- a refused command does not print PETSc's list of unused options.
+- ``--force`` replaces an existing output whole, and outputs are written under a temporary
+  name (nothing half-written is left when a write fails);
+- a sweep's lock file ``<out>.lock`` is exclusive, and an output whose folder cannot be written
+  is found by asking the folder.
+
+The refusals (an existing output without ``--force``, an output in a file or an unwritable
+folder, ``--force`` with ``--resume``, a second sweep to a locked file, a stale lock, PETSc's
+list of unused options after a refusal) are in the bad-input corpus, tests/test_bad_inputs.py.
 """
 
 from __future__ import annotations
@@ -15,8 +17,6 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import subprocess
-import sys
 from importlib import metadata
 from pathlib import Path
 
@@ -26,11 +26,7 @@ import pytest
 from skinfem.outputs import write_atomically
 from tests.cli_helpers import skinid
 
-DIC = Path(__file__).parent / "data" / "dic" / "vic9_extract.csv"
-MATERIAL = ["--mu", "0.0012", "--k1", "0.017", "--k2", "12", "--kappa", "0.28", "--theta", "30"]
-SIMULATE = ["simulate", "--config", "small", *MATERIAL, "--alpha", "0.05", "-0.05"]
 OLD_BYTES = b"an output that took hours"
-PETSC_WARNING = "There are options you set that were not used"
 
 # one spelling per meaning: no command may use the spellings on the right
 CANONICAL = {
@@ -90,14 +86,6 @@ def help_blocks(text: str) -> dict[str, str]:
     return blocks
 
 
-def assert_refused(res: subprocess.CompletedProcess, message: str) -> None:
-    """Exit status 2, one line on stderr containing ``message``, no traceback or PETSc list."""
-    lines = res.stderr.strip().splitlines()
-    assert res.returncode == 2, res.stderr
-    assert len(lines) == 1 and message in lines[0], res.stderr
-    assert PETSC_WARNING not in res.stdout + res.stderr
-
-
 def old_output(path: Path) -> Path:
     """An existing output at ``path`` (a file, or a folder if it has no suffix) holding OLD_BYTES;
     returns the file whose bytes must survive."""
@@ -111,11 +99,11 @@ def old_output(path: Path) -> Path:
 
 def fake_dataset(path: Path) -> Path:
     """A finished 12-material dataset (2 held out) of smooth fields on 36 cells: no FE."""
-    from skinfem.config import PARAM_NAMES, load_config
+    from skinfem.config import load_config
     from skinfem.io import STATUS_OK, create_dataset, write_simulation
 
     config = load_config("small")
-    bounds = np.array([config.sweep.bounds[n] for n in PARAM_NAMES])
+    bounds = config.sweep.box
     rng = np.random.default_rng(0)
     unit = rng.uniform(size=(12, 5))
     params = bounds[:, 0] + unit * np.ptp(bounds, axis=1)
@@ -180,58 +168,7 @@ def test_the_old_design_spelling_is_a_hidden_deprecated_alias(capsys):
     assert "--designs is required" in capsys.readouterr().err
 
 
-# ---------------------------------------------------------------- existing outputs
-
-REFUSALS = {  # command -> (its arguments before --out, the output's name)
-    "simulate": (SIMULATE, "run.h5"),
-    "sweep": (["sweep", "--config", "small", "--quiet"], "data.h5"),
-    "merge": (["merge", "shard0.h5", "shard1.h5"], "data.h5"),
-    "noise": (["noise", "--data", "data.h5", "--length", "1", "--level", "0.05"], "noisy.h5"),
-    "surrogate fit": (["surrogate", "fit", "--data", "data.h5"], "emu"),
-    "infer": (["infer", "--emulator", "emu", "--data", "data.h5", "--material", "0"], "post"),
-    "study test-set": (["study", "test-set", "--emulator", "emu", "--data", "data.h5", "--designs", "2"], "study"),
-    "study setups": (["study", "setups", "--emulator", "emu", "--data", "data.h5", "--designs", "2"], "study"),
-    "study noise": (["study", "noise", "--data", "data.h5", "--designs", "2"], "study"),
-    "check": (["check", "--config", "small", "--measurement", "m.csv", "--noise-sd", "1e-4", "1e-4", "1e-4"],
-              "report"),
-    "measurement import": (["measurement", "import", DIC, "--alpha", "0.05", "-0.02", "--t", "0.8"], "m.csv"),
-    "measurement show": (["measurement", "show", DIC], "m.png"),
-}
-
-
-@pytest.mark.parametrize("command", list(REFUSALS))
-def test_an_existing_output_is_refused_before_any_computing(command, tmp_path):
-    args, name = REFUSALS[command]
-    out = tmp_path / name
-    kept = old_output(out)
-    res = skinid(*args, "--out", out, cwd=tmp_path)
-    assert_refused(res, f"error: {out} exists; pass --force to replace it")
-    assert kept.read_bytes() == OLD_BYTES
-    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no lock, temporary or partial file left
-
-
-def test_simulate_refuses_existing_fields_and_fields_that_would_overwrite_out(tmp_path):
-    kept = old_output(tmp_path / "fields.h5")  # the data file of fields.xdmf
-    res = skinid(*SIMULATE, "--out", tmp_path / "run.h5", "--fields", tmp_path / "fields.xdmf")
-    assert_refused(res, f"error: {kept} exists; pass --force to replace it")
-    res = skinid(*SIMULATE, "--out", tmp_path / "run.h5", "--fields", tmp_path / "run.xdmf")
-    assert_refused(res, "writes its data to")
-    assert kept.read_bytes() == OLD_BYTES and not (tmp_path / "run.h5").exists()
-
-
-def test_surrogate_validate_refuses_to_replace_a_validation(tmp_path):
-    kept = old_output(tmp_path / "emu")
-    (tmp_path / "emu" / "validation.json").write_bytes(OLD_BYTES)
-    res = skinid("surrogate", "validate", "--emulator", tmp_path / "emu")
-    assert_refused(res, f"error: {tmp_path / 'emu' / 'validation.json'} exists; pass --force to replace it")
-    assert (tmp_path / "emu" / "validation.json").read_bytes() == kept.read_bytes() == OLD_BYTES
-
-
-@pytest.mark.parametrize("command", ["sweep", "study test-set", "check"])
-def test_force_and_resume_exclude_each_other(command, tmp_path):
-    args, name = REFUSALS[command]
-    res = skinid(*args, "--out", tmp_path / name, "--force", "--resume", cwd=tmp_path)
-    assert_refused(res, "--resume completes an existing output and --force replaces it")
+# ---------------------------------------------------------------- --force
 
 
 def test_merge_and_noise_force_replace_a_file(tmp_path):
@@ -250,30 +187,9 @@ def test_merge_and_noise_force_replace_a_file(tmp_path):
 # ---------------------------------------------------------------- folders that cannot be written
 
 
-@pytest.mark.parametrize("command", ["simulate", "sweep", "surrogate fit", "infer", "noise"])
-def test_an_output_in_a_file_is_refused_before_any_computing(command, tmp_path):
-    args, name = REFUSALS[command]
-    (tmp_path / "file").write_bytes(OLD_BYTES)
-    res = skinid(*args, "--out", tmp_path / "file" / name, cwd=tmp_path)
-    assert_refused(res, f"'{tmp_path / 'file'}' is a file, not a folder")
-
-
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only folder: chmod cannot refuse it")
-@pytest.mark.parametrize("command", ["simulate", "sweep", "surrogate fit", "study noise", "measurement import"])
-def test_an_unwritable_folder_is_refused_before_any_computing(command, tmp_path):
-    args, name = REFUSALS[command]
-    folder = tmp_path / "read_only"
-    folder.mkdir(mode=0o500)
-    try:
-        res = skinid(*args, "--out", folder / "sub" / name, cwd=tmp_path)
-    finally:
-        folder.chmod(0o700)
-    assert_refused(res, f"'{folder}' is not writable")
-    assert list(folder.iterdir()) == []
-
-
 def test_check_output_asks_the_folder_for_write_permission(tmp_path, monkeypatch):
-    """The check the test above makes through the commands, where root cannot make it."""
+    """The check tests/test_bad_inputs.py::test_an_unwritable_folder_is_refused makes through the
+    commands, where root cannot make it."""
     from skinfem import outputs
 
     asked = []
@@ -284,38 +200,6 @@ def test_check_output_asks_the_folder_for_write_permission(tmp_path, monkeypatch
 
 
 # ---------------------------------------------------------------- the sweep lock
-
-
-def dead_pid() -> int:
-    """The id of a process that has ended."""
-    child = subprocess.Popen([sys.executable, "-c", "pass"])
-    child.wait()
-    return child.pid
-
-
-def test_a_second_sweep_to_the_same_output_is_refused(tmp_path):
-    out, lock = tmp_path / "data.h5", tmp_path / "data.h5.lock"
-    lock.write_text(f"{os.getpid()}\n")  # a sweep that runs: this process
-    res = skinid("sweep", "--config", "small", "--out", out, "--resume", "--quiet")
-    assert_refused(res, f"{out} is being written by another sweep (PID {os.getpid()}")
-    assert lock.read_text() == f"{os.getpid()}\n" and not out.exists()
-
-
-def test_a_stale_lock_is_reported_with_its_removal(tmp_path):
-    out, lock = tmp_path / "data.h5", tmp_path / "data.h5.lock"
-    pid = dead_pid()
-    lock.write_text(f"{pid}\n")
-    res = skinid("sweep", "--config", "small", "--out", out, "--quiet")
-    assert_refused(res, f"stale lock {lock} (PID {pid} is not running)")
-    assert f"rm '{lock}'" in res.stderr and lock.exists()
-
-
-def test_the_lock_is_removed_when_the_sweep_ends_on_an_error(tmp_path):
-    out = tmp_path / "data.h5"
-    old_output(out)  # refused after the lock is taken
-    res = skinid("sweep", "--config", "small", "--out", out, "--quiet")
-    assert_refused(res, "exists; pass --force to replace it or --resume to complete it")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["data.h5"]
 
 
 def test_take_lock_is_exclusive(tmp_path):

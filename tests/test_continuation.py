@@ -46,7 +46,7 @@ def two_design_forward(config, mesh_dir, continuation):
     """The serial FE forward model (all effects) at two designs and two load fractions."""
     from inference.forward import FEForward, PointSet
 
-    bounds = np.array([config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    bounds = config.sweep.box
     g = np.linspace(-18, 18, 13)
     xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     obs = [PointSet(np.array([0.05, -0.05]), 1.0, xy), PointSet(np.array([0.05, -0.05]), 0.5, xy),

@@ -94,7 +94,7 @@ def mixed_design_fe(config, mesh_dir, increments=2, cache_dir=None):
     on a 2 mm grid of DIC points over +-20 mm."""
     from inference.forward import FEForward, PointSet
 
-    bounds = np.array([config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    bounds = config.sweep.box
     g = np.linspace(-20, 20, 21)
     obs = [PointSet(alpha=np.array([0.05, -0.05]), t=1.0, xy=np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
     fe = FEForward(config, obs, bounds, mesh_dir, increments=increments, comm=MPI.COMM_SELF, cache_dir=cache_dir)
@@ -187,7 +187,7 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     assert final["metrics"]["rmse"] <= 0.5 * base["metrics"]["rmse"]
     assert not final["metrics"]["structured"]
     assert final["metrics"]["rmse"] < 1.15 * final["metrics"]["noise_rms"]
-    bounds = np.array([small_config.sweep.bounds[n] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    bounds = small_config.sweep.box
     truth = (TRUTH.as_array() - bounds[:, 0]) / np.ptp(bounds, axis=1)
 
     def distance(version):

@@ -38,7 +38,7 @@ def synthetic_strain(params: np.ndarray, bounds: np.ndarray, alpha: np.ndarray, 
 def dataset(tmp_path_factory):
     """A 12-material dataset (2 held out) of :func:`synthetic_strain` on a 12 x 12 grid of cells."""
     config = load_config("small")
-    bounds = np.array([config.sweep.bounds[n] for n in PARAM_NAMES])
+    bounds = config.sweep.box
     rng = np.random.default_rng(0)
     params = bounds[:, 0] + rng.uniform(size=(12, 5)) * (bounds[:, 1] - bounds[:, 0])
     g = np.linspace(-18, 18, 12)
