@@ -37,7 +37,8 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
 
 
 def regions_map(result: CheckResult, version: int, path: Path) -> Path:
-    """Per-point RMS standardised residual (all observations) with the region outlines."""
+    """Per-point RMS standardised residual (all observations) with the region outlines and, for
+    the baseline, the diagnosis's hotspot circled."""
     plt = pyplot()
 
     v = result.versions[version]
@@ -55,6 +56,11 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     r = 2.2 * h
     for sign in (1, -1):
         ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)
+    if version == 0:
+        spot = result.diagnosis.hotspot
+        ax.add_patch(plt.Circle((spot.x, spot.y), spot.radius, fill=False, color="lime", lw=1.5,
+                                label=f"hotspot: {spot.rms_sigma:.1f} σ over its {spot.points} nearest points"))
+        ax.legend(loc="lower right", fontsize=8)
     ax.text(0.02, 0.98, "\n".join(f"{i + 1}. {g.region}: {g.rms_sigma:.1f} σ" for i, g in enumerate(v.regions)),
             transform=ax.transAxes, fontsize=8, va="top", bbox=dict(facecolor="w", alpha=0.85, lw=0))
     ax.set_xlim(-2.5 * h, 2.5 * h)
