@@ -71,78 +71,94 @@ def check_strain_scale(m, membrane_half: float) -> None:
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
+    """The parser of ``skinid <command>`` for ``prog`` ending in infer, noise, check, measurement or study."""
     parser = CommandParser(prog=prog, description=__doc__.splitlines()[0])
-    if prog.endswith("infer"):
-        parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-        src = parser.add_mutually_exclusive_group(required=True)
-        src.add_argument("--data", type=Path, help="dataset (.h5): observe one of its materials")
-        src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
-        parser.add_argument("--material", type=int, help="with --data: material index")
-        parser.add_argument("--designs", help="with --data: design indices, e.g. '2' or '0,2,4' (default: all)")
-        parser.add_argument("--frames", help="with --data: frame indices, e.g. '-1' or '-3,-2,-1' (default: -1)")
-        parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
-                            help="unknown noise per component, or the measurement's sd columns")
-        add_output(parser, "output directory")
-        _add_sampler(parser)
-        return parser
-    if prog.endswith("noise"):
-        parser.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
-        parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
-        parser.add_argument("--level", type=float, required=True,
-                            help="amplitude as a fraction of the max |strain| of the training data")
-        parser.add_argument("--seed", type=int, default=0, help="random seed")
-        add_output(parser, "noisy dataset (.h5)")
-        return parser
-    if prog.endswith("check"):
-        parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
-        parser.add_argument("--config", help="preset or TOML of the mesh the check runs on "
-                                             "(default: the emulator's dataset configuration)")
-        start = parser.add_mutually_exclusive_group()
-        start.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
-                                                         "(default: the best of 5 spread points)")
-        start.add_argument("--start", type=float, nargs=5, metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
-                           help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
-                                "default: the best of 5 spread points)")
-        add_output(parser, "report directory (its fe_runs/ keeps finished FE runs for --resume)", resumable=True)
-        parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
-                            help="measurement noise sd per component [strain] (default: the files' sd columns)")
-        parser.add_argument("--noise-length", type=float, default=0.0,
-                            help="noise correlation length [mm] (0: independent points)")
-        parser.add_argument("--noise-nugget", type=float, default=0.0,
-                            help="uncorrelated share of the noise variance in [0, 1]")
-        parser.add_argument("--dic-window", type=float, default=1.0,
-                            help="the DIC strain window (virtual strain gauge) side [mm]")
-        parser.add_argument("--spacing", type=float, default=1.0,
-                            help="use one measured point per square of this side [mm]")
-        parser.add_argument("--no-discretisation", action="store_true",
-                            help="skip the refined-mesh estimate of the check's discretisation error")
-        parser.add_argument("--refine", choices=["uniform", "edge"], default="uniform",
-                            help="the estimate's refined mesh: every size halved, or only the membrane-edge "
-                                 "cells (for fine or quadratic meshes); layers doubled in both")
-        parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
-        parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
-        parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
-        parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
-        parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
-        return parser
-    if prog.endswith("measurement"):
-        sub = parser.add_subparsers(dest="action", required=True)
-        p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
-        p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
-        _add_dic_import(p)
-        p.add_argument("--alpha", type=float, nargs=2, required=True, metavar=("A11", "A22"),
-                       help="the membrane design (alpha11, alpha22)")
-        p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
-        p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
-        add_output(p, "measurement CSV to write")
-        p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
-        p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
-        _add_dic_import(p)
-        p.add_argument("--alpha", type=float, nargs=2, metavar=("A11", "A22"),
-                       help="the membrane design: report the plausibility check on the figure")
-        p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
-        add_output(p, "figure (.png)")
-        return parser
+    command = next(name for name in PARSERS if prog.endswith(name))
+    PARSERS[command](parser)
+    return parser
+
+
+def _infer_parser(parser: argparse.ArgumentParser) -> None:
+    """``skinid infer``: the posterior of one material or of measurements."""
+    parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="dataset (.h5): observe one of its materials")
+    src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
+    parser.add_argument("--material", type=int, help="with --data: material index")
+    parser.add_argument("--designs", help="with --data: design indices, e.g. '2' or '0,2,4' (default: all)")
+    parser.add_argument("--frames", help="with --data: frame indices, e.g. '-1' or '-3,-2,-1' (default: -1)")
+    parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
+                        help="unknown noise per component, or the measurement's sd columns")
+    add_output(parser, "output directory")
+    _add_sampler(parser)
+
+
+def _noise_parser(parser: argparse.ArgumentParser) -> None:
+    """``skinid noise``: a dataset with spatially correlated noise added."""
+    parser.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
+    parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
+    parser.add_argument("--level", type=float, required=True,
+                        help="amplitude as a fraction of the max |strain| of the training data")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
+    add_output(parser, "noisy dataset (.h5)")
+
+
+def _check_parser(parser: argparse.ArgumentParser) -> None:
+    """``skinid check``: model criticism of measurements against the FE model."""
+    parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
+    parser.add_argument("--config", help="preset or TOML of the mesh the check runs on "
+                                         "(default: the emulator's dataset configuration)")
+    start = parser.add_mutually_exclusive_group()
+    start.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
+                                                     "(default: the best of 5 spread points)")
+    start.add_argument("--start", type=float, nargs=5, metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
+                       help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
+                            "default: the best of 5 spread points)")
+    add_output(parser, "report directory (its fe_runs/ keeps finished FE runs for --resume)", resumable=True)
+    parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
+                        help="measurement noise sd per component [strain] (default: the files' sd columns)")
+    parser.add_argument("--noise-length", type=float, default=0.0,
+                        help="noise correlation length [mm] (0: independent points)")
+    parser.add_argument("--noise-nugget", type=float, default=0.0,
+                        help="uncorrelated share of the noise variance in [0, 1]")
+    parser.add_argument("--dic-window", type=float, default=1.0,
+                        help="the DIC strain window (virtual strain gauge) side [mm]")
+    parser.add_argument("--spacing", type=float, default=1.0,
+                        help="use one measured point per square of this side [mm]")
+    parser.add_argument("--no-discretisation", action="store_true",
+                        help="skip the refined-mesh estimate of the check's discretisation error")
+    parser.add_argument("--refine", choices=["uniform", "edge"], default="uniform",
+                        help="the estimate's refined mesh: every size halved, or only the membrane-edge "
+                             "cells (for fine or quadratic meshes); layers doubled in both")
+    parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
+    parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
+    parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
+    parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
+    parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
+
+
+def _measurement_parser(parser: argparse.ArgumentParser) -> None:
+    """``skinid measurement import|show``: DIC exports."""
+    sub = parser.add_subparsers(dest="action", required=True)
+    p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
+    p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
+    _add_dic_import(p)
+    p.add_argument("--alpha", type=float, nargs=2, required=True, metavar=("A11", "A22"),
+                   help="the membrane design (alpha11, alpha22)")
+    p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
+    p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
+    add_output(p, "measurement CSV to write")
+    p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
+    p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
+    _add_dic_import(p)
+    p.add_argument("--alpha", type=float, nargs=2, metavar=("A11", "A22"),
+                   help="the membrane design: report the plausibility check on the figure")
+    p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
+    add_output(p, "figure (.png)")
+
+
+def _study_parser(parser: argparse.ArgumentParser) -> None:
+    """``skinid study test-set|setups|noise``: many posteriors."""
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
@@ -174,7 +190,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)
-    return parser
+
+
+PARSERS = {"infer": _infer_parser, "noise": _noise_parser, "check": _check_parser,
+           "measurement": _measurement_parser, "study": _study_parser}
 
 
 def _add_dic_import(p: argparse.ArgumentParser) -> None:
