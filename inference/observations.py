@@ -139,18 +139,35 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
         MeasurementError: naming the file, the line and the problem.
     """
     path = Path(path)
+    lines = _read_lines(path)
+
+    def fail(lineno: int, problem: str):
+        raise MeasurementError(f"{path}:{lineno}: {problem}")
+
+    alpha, t, measure, lineno = _read_header(lines, fail)
+    rows, numbers = _read_rows(lines, lineno, half_length, fail)
+    _check_points(rows, numbers, fail)
+    try:
+        strain = to_log_strain(rows[:, 2], rows[:, 3], rows[:, 4], measure)
+    except ValueError as exc:
+        raise MeasurementError(f"{path}: {exc} (strains in percent? the file must hold fractions)") from None
+    return Measurement(path, alpha, t, rows[:, :2], strain, rows[:, 5:8] if rows.shape[1] > 5 else None)
+
+
+def _read_lines(path: Path) -> list[str]:
+    """The file's lines (a BOM, as spreadsheet exports write, is dropped)."""
     if path.is_dir():
         raise MeasurementError(f"measurement file '{path}' is a folder")
     if not path.is_file():
         raise MeasurementError(f"measurement file '{path}' does not exist")
     try:
-        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a BOM (spreadsheet exports) is dropped
+        return path.read_text(encoding="utf-8-sig").splitlines()
     except UnicodeDecodeError:
         raise MeasurementError(f"measurement file '{path}' is not UTF-8 text (a CSV file)") from None
 
-    def fail(lineno: int, problem: str):
-        raise MeasurementError(f"{path}:{lineno}: {problem}")
 
+def _read_header(lines: list[str], fail) -> tuple[np.ndarray, float, str, int]:
+    """(alpha (2,), t, strain measure, line number of the column names) from the comment header."""
     if not lines or lines[0].strip() != HEADER:
         fail(1, f"first line must be '{HEADER}'")
     meta, lineno = {}, 1
@@ -177,13 +194,18 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
     measure = meta.get("strain", "log")
     if measure not in STRAIN_MEASURES:
         fail(lineno, f"unknown strain measure '{measure}' (use one of {', '.join(STRAIN_MEASURES)})")
+    return alpha, t, measure, lineno
+
+
+def _read_rows(lines: list[str], lineno: int, half_length: float | None, fail) -> tuple[np.ndarray, list[int]]:
+    """Data rows (n, 5) x, y, exx, eyy, exy [+ sd_exx, sd_eyy, sd_exy: (n, 8)] after the column
+    names on line ``lineno``, and their line numbers."""
     columns = [c.strip() for c in lines[lineno - 1].split(",")]
     missing = [c for c in COLUMNS if c not in columns]
     if missing:
         fail(lineno, f"column(s) {', '.join(missing)} missing; need {','.join(COLUMNS)}[,{','.join(SD_COLUMNS)}]")
     has_sd = all(c in columns for c in SD_COLUMNS)
-    wanted = list(COLUMNS) + (list(SD_COLUMNS) if has_sd else [])
-    idx = [columns.index(c) for c in wanted]
+    idx = [columns.index(c) for c in list(COLUMNS) + (list(SD_COLUMNS) if has_sd else [])]
     rows, numbers = [], []
     for n, line in enumerate(lines[lineno:], start=lineno + 1):
         if not line.strip() or line.startswith("#"):
@@ -205,13 +227,7 @@ def read_measurement(path: Path | str, half_length: float | None = None) -> Meas
         numbers.append(n)
     if len(rows) < 3:
         fail(len(lines), f"only {len(rows)} data rows; need at least 3")
-    rows = np.array(rows)
-    _check_points(rows, numbers, fail)
-    try:
-        strain = to_log_strain(rows[:, 2], rows[:, 3], rows[:, 4], measure)
-    except ValueError as exc:
-        raise MeasurementError(f"{path}: {exc} (strains in percent? the file must hold fractions)") from None
-    return Measurement(path, alpha, t, rows[:, :2], strain, rows[:, 5:8] if has_sd else None)
+    return np.array(rows), numbers
 
 
 def _check_points(rows: np.ndarray, numbers: list[int], fail) -> None:
