@@ -352,6 +352,15 @@ class Emulator:
         )
 
 
+def gp_rows(n_rows: int, gp_fraction: float, max_gp_rows: int | None, seed: int) -> np.ndarray:
+    """Sorted indices of the seeded subset of ``n_rows`` training rows the GPs are fitted on:
+    ``gp_fraction`` of them (at least 2), at most ``max_gp_rows``."""
+    n_gp = max(2, int(round(gp_fraction * n_rows)))
+    if max_gp_rows is not None:
+        n_gp = min(n_gp, max_gp_rows)
+    return np.sort(np.random.default_rng(seed).choice(n_rows, n_gp, replace=False))
+
+
 def fit_emulator(
     data: StrainDataset,
     components: tuple[str, ...] = ("xx", "yy"),
@@ -384,25 +393,15 @@ def fit_emulator(
 
     lower = np.concatenate([data.lower, rows.inputs[:, 5:].min(0)])
     upper = np.concatenate([data.upper, rows.inputs[:, 5:].max(0)])
-    n_gp = max(2, int(round(gp_fraction * len(rows.index))))
-    if max_gp_rows is not None:
-        n_gp = min(n_gp, max_gp_rows)
-    subset = np.sort(np.random.default_rng(seed).choice(len(rows.index), n_gp, replace=False))
+    subset = gp_rows(len(rows.index), gp_fraction, max_gp_rows, seed)
     x_unit = (rows.inputs[subset] - lower) / (upper - lower)
     pca_seconds = time.perf_counter() - start
     gps = fit_gps(x_unit, weights[subset], restarts=restarts, seed=seed, n_jobs=n_jobs)
     provenance = EmulatorProvenance(
-        dataset=data.path.resolve(),
-        dataset_config=data.config.to_toml(),
-        mesh_sha256=data.mesh_sha256,
-        block_half_length=data.config.mesh.length / 2,
-        train_materials=tuple(train.tolist()),
-        test_materials=tuple(np.flatnonzero(data.split == 1).tolist()),
-        n_training_rows=int(len(rows.index)),
-        n_gp_rows=int(n_gp),
-        gp_fraction=gp_fraction,
-        restarts=restarts,
-        seed=seed,
+        dataset=data.path.resolve(), dataset_config=data.config.to_toml(), mesh_sha256=data.mesh_sha256,
+        block_half_length=data.config.mesh.length / 2, train_materials=tuple(train.tolist()),
+        test_materials=tuple(np.flatnonzero(data.split == 1).tolist()), n_training_rows=int(len(rows.index)),
+        n_gp_rows=len(subset), gp_fraction=gp_fraction, restarts=restarts, seed=seed,
         explained_variance_ratio={c: tuple(p.explained_variance_ratio_[:20].tolist()) for c, p in pcas.items()},
         fit_seconds={"pca": pca_seconds, "total": time.perf_counter() - start},
         versions={n: metadata.version(n) for n in ("skinid", "scikit-learn", "torch", "numpy")},
