@@ -428,28 +428,11 @@ class PosteriorSamples:
         return messages
 
 
-def sample_posterior(
-    posterior: SkinPosterior,
-    chains: int = 4,
-    warmup: int = 500,
-    draws: int = 1000,
-    seed: int = 0,
-    n_jobs: int = 2,
-    progress: bool = True,
-) -> PosteriorSamples:
-    """Run ``chains`` NUTS chains (``n_jobs`` at a time) from around the posterior mode."""
-    start = time.perf_counter()
-    mode = prepare(posterior, seed=seed)
-    inverse_mass = laplace_inverse_mass(posterior, mode)
-    rng = np.random.default_rng(seed)
-    inits = [mode + rng.normal(0, 0.1, size=mode.shape) for _ in range(chains)]
-    seeds = [seed * 1000 + c for c in range(chains)]
-    n_jobs = max(1, min(n_jobs, chains))
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=chains * (warmup + draws), desc="NUTS", unit="it", file=sys.stderr)
+def _run_chains(posterior: SkinPosterior, inits: list[np.ndarray], inverse_mass: np.ndarray, warmup: int,
+                draws: int, seeds: list[int], n_jobs: int, bar) -> list:
+    """One chain per start in ``inits``, ``n_jobs`` at a time (spawned processes when > 1),
+    advancing the progress ``bar`` (or None) as they go."""
+    chains = len(inits)
     if n_jobs == 1:
         results = []
         for c in range(chains):
@@ -472,6 +455,32 @@ def sample_posterior(
                         bar.update(n)
             results = job.get()
         manager.shutdown()
+    return results
+
+
+def sample_posterior(
+    posterior: SkinPosterior,
+    chains: int = 4,
+    warmup: int = 500,
+    draws: int = 1000,
+    seed: int = 0,
+    n_jobs: int = 2,
+    progress: bool = True,
+) -> PosteriorSamples:
+    """Run ``chains`` NUTS chains (``n_jobs`` at a time) from around the posterior mode."""
+    start = time.perf_counter()
+    mode = prepare(posterior, seed=seed)
+    inverse_mass = laplace_inverse_mass(posterior, mode)
+    rng = np.random.default_rng(seed)
+    inits = [mode + rng.normal(0, 0.1, size=mode.shape) for _ in range(chains)]
+    seeds = [seed * 1000 + c for c in range(chains)]
+    n_jobs = max(1, min(n_jobs, chains))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=chains * (warmup + draws), desc="NUTS", unit="it", file=sys.stderr)
+    results = _run_chains(posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar)
     if bar is not None:
         bar.close()
     samples = PosteriorSamples(
