@@ -1,6 +1,6 @@
 """Convergence of what the check compares: the DIC surface strain at scattered points.
 
-    python benchmarks/dic_convergence.py [meshes | refinements | edge] [--out benchmarks/results/dic_convergence.json]
+    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper] [--out benchmarks/results/dic_convergence.json]
 
 One material (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), the mixed design
 (0.05, -0.05) at t = 1, measured by the DIC operator (1 mm window) at a DIC-like point cloud
@@ -14,7 +14,10 @@ in bands of max(|x|, |y|) (under the membrane < 8 mm, the edge band 8-12 mm, far
 when only the layers through the thickness are doubled and when only the in-plane sizes are
 halved — which refinement a two-mesh estimate of its error must make (seconds: one
 simulation). ``edge``: series refined only at the membrane edge (``mesh.h_edge``), each field
-compared with the previous one in its series. The parts are merged into the same file.
+compared with the previous one in its series. ``paper``: the paper preset's error per region
+against a Richardson-extrapolated quadratic reference, and whether each observable converges
+through the thickness (the DIC surface strain, and the average over the top layer of skin cells
+that the datasets hold). The parts are merged into the same file.
 Numbers are recorded, not asserted.
 """
 
@@ -50,8 +53,9 @@ def label(mesh) -> str:
     return f"Q{degree} {hm:g}/{hf:g} mm, s{s} m{m}" + (f", edge {edge[0]:g} mm" if edge and edge[0] else "")
 
 
-def measure(mesh, xy, mesh_dir, warm: bool = True) -> tuple[np.ndarray, float, int]:
-    """DIC strain (n, 3) at xy, seconds of one simulation (after a first one if ``warm``), dofs."""
+def measure(mesh, xy, mesh_dir, warm: bool = True, cells: bool = False):
+    """DIC strain (n, 3) at xy, seconds of one simulation (after a first one if ``warm``), dofs;
+    with ``cells`` also the top skin cells' average log strain (n_cells, 3) and their centroids."""
     from skinfem.config import load_config
     from skinfem.dic import StrainGauge, SurfaceStrainGauge
     from skinfem.model import SkinModel
@@ -60,21 +64,25 @@ def measure(mesh, xy, mesh_dir, warm: bool = True) -> tuple[np.ndarray, float, i
     degree, hm, hf, s, m, *edge = mesh
     config = load_config("small").with_changes(
         mesh={"h_membrane": hm, "h_far": hf, "skin_layers": s, "muscle_layers": m, "h_edge": edge[0] if edge else 0.0},
-        solver={"increments": 2, "element_degree": degree, "quadrature_degree": 2 * degree})
+        solver={"increments": 2, "element_degree": degree, "quadrature_degree": 2 * degree},
+        observable={"kind": "top_cell_average"})
     model = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir)
     gauge = SurfaceStrainGauge(model.u, xy, StrainGauge(1.0))
     if warm:
         model.simulate(SkinParams(*PARAMS), Design(0.05, -0.05))
     start = time.perf_counter()
-    model.simulate(SkinParams(*PARAMS), Design(0.05, -0.05))
-    return gauge(), time.perf_counter() - start, model.n_dofs
+    frames = model.simulate(SkinParams(*PARAMS), Design(0.05, -0.05))
+    seconds = time.perf_counter() - start
+    if cells:
+        return gauge(), seconds, model.n_dofs, (frames.strain[-1], frames.xy)
+    return gauge(), seconds, model.n_dofs
 
 
 def main() -> None:
     from inference.synthetic import dic_points
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("part", nargs="?", choices=["meshes", "refinements", "edge"], default="meshes")
+    parser.add_argument("part", nargs="?", choices=["meshes", "refinements", "edge", "paper"], default="meshes")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "dic_convergence.json")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     args = parser.parse_args()
@@ -84,6 +92,8 @@ def main() -> None:
         result["refinements"] = refinements(xy, args.mesh_dir)
     elif args.part == "edge":
         result["edge"] = edge_series(xy, args.mesh_dir)
+    elif args.part == "paper":
+        result["paper"] = paper_errors(xy, args.mesh_dir)
     else:
         result.update(meshes(xy, args.mesh_dir))
     args.out.write_text(json.dumps(result, indent=2) + "\n")
@@ -137,6 +147,44 @@ def refinements(xy, mesh_dir) -> dict:
         print(row, flush=True)
     return {"command": "python benchmarks/dic_convergence.py refinements", "base": label(REFINEMENTS["base"]),
             "base_seconds": round(seconds["base"], 1), "base_dofs": dofs["base"], "rows": rows}
+
+
+PAPER = (1, 0.5, 2.8, 1, 5, 0.0)
+PAPER_SKIN_LAYERS = [PAPER, (1, 0.5, 2.8, 2, 5, 0.0), (1, 0.5, 2.8, 4, 5, 0.0)]
+PAPER_REFERENCE = [(2, 2, 4, 2, 4, 0.0), (2, 2, 4, 2, 4, 1.0), (2, 2, 4, 2, 4, 0.5)]
+PAPER_CANDIDATES = [(1, 0.5, 2.8, 4, 5, 0.25), (2, 2, 4, 3, 4, 1.0), (2, 2, 4, 2, 8, 1.0)]
+
+
+def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
+    """Extrapolated field and observed order from three fields at halving mesh sizes: the order
+    from the RMS changes, the limit fine + (fine - medium) / (2^p - 1)."""
+    ratio = np.sqrt(np.mean((medium - coarse) ** 2) / np.mean((fine - medium) ** 2))
+    order = float(np.log2(ratio))
+    return fine + (fine - medium) / (2**order - 1), order
+
+
+def paper_errors(xy, mesh_dir) -> dict:
+    """The paper preset and its refinements against a Richardson-extrapolated Q2 reference
+    (edge cells 2, 1, 0.5 mm); the skin-layer series compares both observables."""
+    surface, rows, cells = {}, [], {}
+    for mesh in [*PAPER_SKIN_LAYERS, *PAPER_REFERENCE, *PAPER_CANDIDATES]:
+        surface[mesh], seconds, dofs, cells[mesh] = measure(mesh, xy, mesh_dir, warm=False, cells=True)
+        rows.append({"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 1)})
+        print(rows[-1], flush=True)
+    reference, order = richardson(*(surface[m] for m in PAPER_REFERENCE))
+    for row, mesh in zip(rows, surface):
+        row["error_vs_reference"] = band_changes(surface[mesh], reference, xy)
+        print(row["mesh"], {k: round(v, 4) for k, v in row["error_vs_reference"].items()}, flush=True)
+    layers = []
+    for previous, mesh in zip(PAPER_SKIN_LAYERS, PAPER_SKIN_LAYERS[1:]):
+        layers.append({"from": label(previous), "to": label(mesh),
+                       "surface_strain": band_changes(surface[mesh], surface[previous], xy),
+                       "top_cell_average": band_changes(cells[mesh][0], cells[previous][0], cells[mesh][1])})
+        print(layers[-1], flush=True)
+    return {"command": "python benchmarks/dic_convergence.py paper",
+            "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in PAPER_REFERENCE),
+            "observed_order": order, "field_rms": float(np.sqrt(np.mean(reference**2))),
+            "meshes": rows, "skin_layers": layers}
 
 
 def meshes(xy, mesh_dir) -> dict:

@@ -191,6 +191,27 @@ class SolverConfig:
         _check(0 < self.krylov_rtol < 1, f"{prefix}.krylov_rtol", "must be in (0, 1)")
 
 
+OBSERVABLES = ("top_cell_average", "surface")
+
+
+@dataclass(frozen=True)
+class ObservableConfig:
+    """What a simulation reports for each top skin cell (:mod:`skinfem.strain`).
+
+    ``kind = "surface"``: the log strain of the skin surface z = 0 at the centre of the cell's
+    top face — what a DIC camera sees, and converged under refinement through the thickness.
+    ``kind = "top_cell_average"``: the average of ln V over the cell (mid-thickness with one
+    skin layer; it moves with the number of skin layers; the default before datasets recorded
+    their observable). Every dataset records its kind.
+    """
+
+    kind: str = "surface"
+
+    def validate(self, prefix: str = "observable") -> None:
+        _check(self.kind in OBSERVABLES, f"{prefix}.kind",
+               f"must be one of {', '.join(OBSERVABLES)}, got {self.kind!r}")
+
+
 def _default_bounds() -> dict[str, list[float]]:
     return {
         "mu": [0.000543, 0.00206],
@@ -271,6 +292,7 @@ SECTIONS: dict[str, type] = {
     "muscle": MuscleConfig,
     "membrane": MembraneConfig,
     "solver": SolverConfig,
+    "observable": ObservableConfig,
     "sweep": SweepConfig,
 }
 
@@ -285,6 +307,7 @@ class Config:
     muscle: MuscleConfig = field(default_factory=MuscleConfig)
     membrane: MembraneConfig = field(default_factory=MembraneConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
+    observable: ObservableConfig = field(default_factory=ObservableConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
 
     def validate(self) -> Config:

@@ -5,14 +5,17 @@ Dataset layout (one file per sweep or simulation; see README "File formats"):
 - ``/params`` (n_mat, 5) float64; attrs ``names``, ``units``, ``lower``, ``upper``
 - ``/designs`` (n_des, 2) float64 (alpha11, alpha22); ``/t`` (n_frames,) load fractions
 - ``/cells/xy`` (n_cells, 2) skin-cell centroids [mm]; ``/cells/volume`` (n_cells,) [mm^3]
-- ``/strain`` (n_mat, n_des, n_frames, n_cells, 3) float32 log strain (xx, yy, xy); one
+- ``/strain`` (n_mat, n_des, n_frames, n_cells, 3) float32 log strain (xx, yy, xy) of the
+  observable named by the root attribute ``observable`` (``surface`` or ``top_cell_average``,
+  :mod:`skinfem.strain`; files without it hold ``top_cell_average``); one
   simulation is one contiguous block. Valid only where ``status == 1`` (NaN for failed
   simulations, undefined for those not run: read through :meth:`StrainDataset.strain`)
 - ``/status`` (n_mat, n_des) int8: 0 not run, 1 converged, -1 failed; ``/messages`` likewise
 - ``/newton_iterations`` (n_mat, n_des) int32 total Newton iterations of the simulation
 - ``/seconds`` (n_mat, n_des) float32 wall time of the simulation
 - ``/split`` (n_mat,) int8: 0 train, 1 test
-- root attrs: ``config`` (TOML), ``versions`` (JSON), ``mesh_sha256``, ``created``, ``seed``
+- root attrs: ``config`` (TOML), ``versions`` (JSON), ``mesh_sha256``, ``created``, ``seed``,
+  ``observable``
 
 Kill safety: every dataset is allocated in full when the file is created (contiguous layout,
 early allocation), so recording a simulation only overwrites bytes at fixed offsets and never
@@ -96,6 +99,7 @@ def create_dataset(
         f.attrs["mesh_sha256"] = mesh_sha256
         f.attrs["created"] = datetime.now(UTC).isoformat(timespec="seconds")
         f.attrs["seed"] = config.sweep.seed
+        f.attrs["observable"] = config.observable.kind
         d = f.create_dataset("params", data=params)
         d.attrs["names"] = list(PARAM_NAMES)
         d.attrs["units"] = list(PARAM_UNITS)
@@ -203,6 +207,11 @@ class StrainDataset:
     versions: dict
     created: str
 
+    @property
+    def observable(self) -> str:
+        """What ``/strain`` holds per cell: ``surface`` or ``top_cell_average`` (:mod:`skinfem.strain`)."""
+        return self.config.observable.kind
+
     @classmethod
     def open(cls, path: Path | str) -> StrainDataset:
         """Read the metadata of a dataset file.
@@ -232,9 +241,10 @@ class StrainDataset:
             if missing:
                 raise ValueError(f"'{path}' is not a complete skinid dataset: it has no {missing[0]}")
             p = f["params"]
+            observable = str(f.attrs.get("observable", "top_cell_average"))  # older files: the cell average
             return cls(
                 path=path,
-                config=config_from_toml(f.attrs["config"]),
+                config=config_from_toml(f.attrs["config"]).with_changes(observable={"kind": observable}),
                 params=p[...],
                 lower=np.asarray(p.attrs["lower"]),
                 upper=np.asarray(p.attrs["upper"]),

@@ -40,7 +40,7 @@ from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
 from skinfem.params import Design, SkinParams
-from skinfem.strain import SkinStrainSampler, top_skin_cells
+from skinfem.strain import ObservedCells, SkinStrainSampler, SurfaceStrainSampler, top_skin_cells
 
 
 class Factorisation(IntEnum):
@@ -138,13 +138,22 @@ class SkinModel:
         self.problem = self._nonlinear_problem()
         self.factorizations = 0  # of the current simulation
         self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
+        self.strain_sampler = self._observed_strain(terms)
+        self.setup_seconds = time.perf_counter() - t0
+
+    def _observed_strain(self, terms: ModelTerms) -> ObservedCells:
+        """The sampler of ``observable.kind`` on the top skin cells; with effects, the strain
+        is measured from the skin's unloaded equilibrium u_ref."""
+        config = self.config
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
         cells = top_skin_cells(self.mesh, self.cell_tags, TAGS["skin"], depth)
+        if config.observable.kind == "surface":
+            return SurfaceStrainSampler(self.u, cells, config.solver.quadrature_degree,
+                                        self.u_ref if self.effects else None)
         F_seen = ufl.Identity(3) + ufl.grad(self.u)
         if self.effects:  # the skin's gradient relative to its unloaded equilibrium
             F_seen = self._skin_gradient(terms, self.u) * ufl.inv(self._skin_gradient(terms, self.u_ref))
-        self.strain_sampler = SkinStrainSampler(self.u, cells, config.solver.quadrature_degree, F_seen)
-        self.setup_seconds = time.perf_counter() - t0
+        return SkinStrainSampler(self.u, cells, config.solver.quadrature_degree, F_seen)
 
     @staticmethod
     def _skin_gradient(terms: ModelTerms, w) -> ufl.core.expr.Expr:
