@@ -289,7 +289,8 @@ def dataset_summary(data: StrainDataset) -> str:
     counts = {name: int(np.count_nonzero(data.status == code)) for name, code in
               (("converged", STATUS_OK), ("failed", STATUS_FAILED), ("not run", STATUS_NOT_RUN))}
     lines = [
-        f"{data.path}: skinid dataset, config '{data.config.name}', created {data.created}",
+        f"{data.path}: skinid dataset, config '{data.config.name}', created {data.created}, "
+        f"observable: {data.observable}",
         f"  {n_mat} materials x {n_des} designs x {n_frames} frames x {n_cells} skin cells "
         f"({data.path.stat().st_size / 1e6:.1f} MB on disk)",
         "  simulations: " + ", ".join(f"{v} {k}" for k, v in counts.items()),
