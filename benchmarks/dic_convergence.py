@@ -1,6 +1,7 @@
 """Convergence of what the check compares: the DIC surface strain at scattered points.
 
-    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper] [--out benchmarks/results/dic_convergence.json]
+    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper]
+        [--out benchmarks/results/dic_convergence.json]
 
 One material (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), the mixed design
 (0.05, -0.05) at t = 1, measured by the DIC operator (1 mm window) at a DIC-like point cloud

@@ -19,9 +19,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-from mpi4py import MPI
-
 from dic_convergence import band_changes
+from mpi4py import MPI
 
 HERE = Path(__file__).resolve().parent
 MIXED = (0.05, -0.05)
