@@ -86,6 +86,8 @@ def main() -> None:
     parser.add_argument("part", nargs="?", choices=["meshes", "refinements", "edge", "paper"], default="meshes")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "dic_convergence.json")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
+    parser.add_argument("--store", type=Path, default=Path("out/dic_convergence"),
+                        help="finished meshes of the paper part, kept so that a killed run resumes")
     args = parser.parse_args()
     xy = dic_points(20.0, 1.0, np.random.default_rng(0))
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
@@ -94,7 +96,7 @@ def main() -> None:
     elif args.part == "edge":
         result["edge"] = edge_series(xy, args.mesh_dir)
     elif args.part == "paper":
-        result["paper"] = paper_errors(xy, args.mesh_dir)
+        result["paper"] = paper_errors(xy, args.mesh_dir, args.store)
     else:
         result.update(meshes(xy, args.mesh_dir))
     args.out.write_text(json.dumps(result, indent=2) + "\n")
@@ -164,12 +166,26 @@ def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
     return fine + (fine - medium) / (2**order - 1), order
 
 
-def paper_errors(xy, mesh_dir) -> dict:
+def measure_resumable(mesh, xy, mesh_dir, store: Path):
+    """``measure(..., cells=True)`` whose result is kept in ``store`` (one .npz per mesh), so that a
+    killed run resumes at the first mesh it had not finished."""
+    path = store / (label(mesh).replace(" ", "_").replace("/", "-").replace(",", "") + ".npz")
+    if not path.exists():
+        field, seconds, dofs, (cell_strain, cell_xy) = measure(mesh, xy, mesh_dir, warm=False, cells=True)
+        store.mkdir(parents=True, exist_ok=True)
+        np.savez(path.with_suffix(".part.npz"), field=field, seconds=seconds, dofs=dofs,
+                 cell_strain=cell_strain, cell_xy=cell_xy)
+        path.with_suffix(".part.npz").replace(path)
+    with np.load(path) as f:
+        return f["field"], float(f["seconds"]), int(f["dofs"]), (f["cell_strain"], f["cell_xy"])
+
+
+def paper_errors(xy, mesh_dir, store: Path) -> dict:
     """The paper preset and its refinements against a Richardson-extrapolated Q2 reference
     (edge cells 2, 1, 0.5 mm); the skin-layer series compares both observables."""
     surface, rows, cells = {}, [], {}
     for mesh in [*PAPER_SKIN_LAYERS, *PAPER_REFERENCE, *PAPER_CANDIDATES]:
-        surface[mesh], seconds, dofs, cells[mesh] = measure(mesh, xy, mesh_dir, warm=False, cells=True)
+        surface[mesh], seconds, dofs, cells[mesh] = measure_resumable(mesh, xy, mesh_dir, store)
         rows.append({"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 1)})
         print(rows[-1], flush=True)
     reference, order = richardson(*(surface[m] for m in PAPER_REFERENCE))

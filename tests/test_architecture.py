@@ -93,7 +93,7 @@ def test_example_acts_as_an_equibiaxial_pre_stretch(models):
     tension = final_strain(model, {"skin_tension.eps": EPS})
     same = final_strain(model, {"pre_stretch.eps_xx": EPS, "pre_stretch.eps_yy": EPS})
     assert np.abs(tension - same).max() < 1e-10
-    assert np.abs(tension - null).max() > 1e-3  # the effect does change the field
+    assert np.abs(tension - null).max() > 0.01 * np.abs(null).max()  # the effect changes the field by > 1 % of its peak
 
 
 def test_example_unloaded_state_is_homogeneous_with_fibers_along_x(models):
