@@ -41,11 +41,38 @@ def small_dataset(tmp_path_factory, mesh_dir):
 
 
 @pytest.fixture(scope="session")
-def small_emulator(small_dataset, tmp_path_factory):
-    """An emulator of the small sweep (GPs on half of the training rows), saved and reloaded."""
+def small_cell_average_dataset(tmp_path_factory, mesh_dir):
+    """The ``small`` sweep with the paper's observable, the top skin cell's average strain."""
+    from skinfem.config import PRESET_DIR
+    from tests.cli_helpers import MPIRUN, skinid
+
+    folder = tmp_path_factory.mktemp("small_cells")
+    config = folder / "small_cells.toml"
+    text = (PRESET_DIR / "small.toml").read_text().replace('name = "small"', 'name = "small_cells"')
+    config.write_text(text + '\n[observable]\nkind = "top_cell_average"\n')
+    out = folder / "small_cells.h5"
+    res = skinid("sweep", "--config", config, "--mesh-dir", mesh_dir, "--out", out, "--quiet",
+                 ranks=2 if MPIRUN else 1)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+def _emulator_of(dataset, folder):
+    """An emulator of a sweep (GPs on half of the training rows), saved; returns its folder."""
     from skinfem.io import StrainDataset
     from surrogate.emulator import fit_emulator
 
-    emulator = fit_emulator(StrainDataset.open(small_dataset), gp_fraction=0.5, restarts=1, seed=0)
-    directory = emulator.save(tmp_path_factory.mktemp("emulator") / "emu")
-    return directory
+    emulator = fit_emulator(StrainDataset.open(dataset), gp_fraction=0.5, restarts=1, seed=0)
+    return emulator.save(folder / "emu")
+
+
+@pytest.fixture(scope="session")
+def small_emulator(small_dataset, tmp_path_factory):
+    """An emulator of the small sweep, saved (tests reload it)."""
+    return _emulator_of(small_dataset, tmp_path_factory.mktemp("emulator"))
+
+
+@pytest.fixture(scope="session")
+def small_cell_average_emulator(small_cell_average_dataset, tmp_path_factory):
+    """An emulator of the small sweep with the top-cell-average observable, saved."""
+    return _emulator_of(small_cell_average_dataset, tmp_path_factory.mktemp("emulator_cells"))
