@@ -47,7 +47,7 @@ def make_paper_posterior(emulator, observed):
             r = self.weights.numpy() - mean
             return torch.tensor(-0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total)), dtype=torch.float64)
 
-    return SklearnLikelihood(emulator, observed)
+    return SklearnLikelihood(emulator, observed, emulator_error=False)  # the paper carried no emulator error
 
 
 def main() -> None:

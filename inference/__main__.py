@@ -22,6 +22,9 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=2, help="chains run in parallel (processes)")
     p.add_argument("--gp-variance", choices=["exact", "mode"], default="exact",
                    help="GP variance at every step (exact) or fixed at the mode (fast)")
+    p.add_argument("--emulator-error", choices=["on", "off"], default="on",
+                   help="carry the emulator's held-out error and PCA truncation in the likelihood (on), "
+                        "or the GP variance only (off)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -158,7 +161,7 @@ def _measurement_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def _study_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid study test-set|setups|noise``: many posteriors."""
+    """``skinid study test-set|setups|noise|coverage``: many posteriors."""
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
@@ -175,6 +178,20 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
     p.add_argument("--others", help="the multi-membrane setup's other designs, e.g. '0,13' "
                                     "(default: the n - 1 designs farthest apart in alpha)")
+    p.add_argument("--materials", help="subset of materials (default: the test split)")
+    add_output(p, "study directory", resumable=True)
+    _add_sampler(p)
+    p = sub.add_parser("coverage", help="coverage of the 50 %% / 95 %% intervals and truth ranks over many "
+                                        "held-out cases (inference.coverage)")
+    p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+    p.add_argument("--data", type=Path, required=True,
+                   help="dataset (.h5) of test materials (its test split), on the emulator's mesh")
+    p.add_argument("--setup", choices=["single", "frames", "membranes"], default="single",
+                   help="the last frame of one design, its last --n frames, or --n designs")
+    p.add_argument("--n", type=int, default=3, help="frames / membranes of the multi setups")
+    p.add_argument("--noise-sd", type=float, default=0.0,
+                   help="independent noise sd added and stated [strain] (0: noise-free, unknown noise)")
+    p.add_argument("--noise-seeds", type=int, default=1, help="noise draws per material and design")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)
@@ -227,7 +244,8 @@ def settings_of(args):
     from inference.studies import SamplerSettings
 
     return SamplerSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed,
-                           n_jobs=args.jobs, gp_variance=args.gp_variance, progress=not args.quiet)
+                           n_jobs=args.jobs, gp_variance=args.gp_variance, progress=not args.quiet,
+                           emulator_error=args.emulator_error == "on")
 
 
 def print_summary(summary: dict, out: Path) -> None:
@@ -238,6 +256,8 @@ def print_summary(summary: dict, out: Path) -> None:
               f"{e['r_hat']:>6.3f} {min(e['ess_bulk'], e['ess_tail']):>6.0f} {true:>10}")
     for w in summary["warnings"]:
         print(f"warning: {w}")
+    if summary.get("error_budget_statement"):
+        print(summary["error_budget_statement"][0].upper() + summary["error_budget_statement"][1:])
     print(f"{summary['divergences']} divergences, {summary['seconds']:.1f} s")
     print(f"wrote {out}/posterior.nc, summary.json, corner.png")
 
@@ -288,10 +308,14 @@ def cmd_study(args) -> None:
     if args.study == "noise":
         _check_noise_study(args, n_des)
     designs = _setups_designs(args, data) if args.study == "setups" else None
+    if args.study == "coverage":
+        _check_coverage(args, {"frames": n_frames, "membranes": n_des}.get(args.setup))
     if args.force:  # the inputs are read and checked: start over
         remove_output(args.out)
     if args.study == "noise":
         _noise_study(args, data)
+    elif args.study == "coverage":
+        _coverage(args, emulator, data)
     elif args.study == "test-set":
         _test_set(args, emulator, data)
     else:
@@ -309,6 +333,27 @@ def _check_noise_study(args, n_designs: int) -> None:
         raise ValueError(f"--gp-fraction must be in (0, 1], got {args.gp_fraction}")
     if args.restarts < 0:
         raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+
+
+def _check_coverage(args, n_max: int | None) -> None:
+    """Refuse the options of ``study coverage`` that are out of range (n_max: the dataset's
+    designs for the membranes setup, its frames for the frames setup; None: --n is not used)."""
+    if n_max is not None and not 1 <= args.n <= n_max:
+        raise ValueError(f"--n must be in [1, {n_max}] for the {args.setup} setup of {args.data}, got {args.n}")
+    if not (math.isfinite(args.noise_sd) and args.noise_sd >= 0):
+        raise ValueError(f"--noise-sd must be >= 0, got {args.noise_sd}")
+    if args.noise_seeds < 1:
+        raise ValueError(f"--noise-seeds must be >= 1, got {args.noise_seeds}")
+
+
+def _coverage(args, emulator, data) -> None:
+    from inference.coverage import coverage_study
+
+    res = coverage_study(emulator, data, args.setup, settings_of(args), args.out, args.n, args.noise_sd,
+                         args.noise_seeds, _ints(args.materials, "--materials"))
+    print(json.dumps({name: {k: round(v, 3) for k, v in e.items() if k.startswith("coverage")}
+                      for name, e in res["parameters"].items()}, indent=2))
+    print(f"{res['n_cases']} cases; wrote {args.out}/coverage.json and ranks.png")
 
 
 def _noise_study(args, data) -> None:

@@ -9,7 +9,10 @@ With ``gp_variance="exact"`` the autograd density is used (its O(n^2) triangular
 dominate and are more stable than any closed form through K^-1). The tests compare both.
 
 Notation: u unconstrained (dim,), z = sigmoid(u[:5]), params = lower + z * span,
-x the 7 emulator inputs of each observation in the emulator's unit box.
+x the 7 emulator inputs of each observation in the emulator's unit box. The covariance of PC
+weight g over the observations is Q_g diag(lambda_g + s_g) Q_g^T with Q_g, lambda_g fixed
+(:meth:`SkinPosterior.fixed_eigen`) and s_g = sigma_c(g)^2 (HalfCauchy noise) or 0 (known noise,
+inside lambda): in the rotated weights Q_g^T w_g the likelihood is a product of independent normals.
 """
 
 from __future__ import annotations
@@ -37,13 +40,16 @@ class FusedLogDensity:
         self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
         self.lower, self.span = posterior.lower.numpy(), posterior.span.numpy()
         self.design = posterior.design_inputs.numpy()
-        self.weights = posterior.weights.numpy()
+        self.rotation, self.fixed_var = posterior.fixed_eigen()  # (G, n_obs, n_obs), (n_obs, G)
+        self.weights = self.rotate(posterior.weights.numpy())
         self.component = posterior.component_of_weight.numpy()
         self.n_comp = len(emu.components)
         self.halfcauchy = posterior.noise == "halfcauchy"
         self.noise_scale = posterior.noise_scale
-        self.known_var = None if posterior.noise_var is None else posterior.noise_var.numpy()
-        self.posterior = posterior
+
+    def rotate(self, a: np.ndarray) -> np.ndarray:
+        """Q_g^T a_g for every weight g: a (n_obs, G, ...) -> (n_obs, G, ...)."""
+        return np.einsum("gpo,pg...->og...", self.rotation, a)
 
     def gp_mean(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """GP mean (n_obs, G) and its gradient (n_obs, G, 7) at unit inputs x (n_obs, 7)."""
@@ -64,10 +70,9 @@ class FusedLogDensity:
         x = np.column_stack([np.tile(params, (len(self.design), 1)), self.design])
         x = (x - self.in_lower) / self.in_span
         mean, dmean = self.gp_mean(x)
-        var = self.posterior.fixed_gp_var.numpy()
+        mean, dmean = self.rotate(mean), self.rotate(dmean)
         sigma = np.exp(u[5:])
-        noise = self.known_var if not self.halfcauchy else sigma[self.component] ** 2
-        total = var + noise
+        total = self.fixed_var + (sigma[self.component] ** 2 if self.halfcauchy else 0.0)
         r = self.weights - mean
         loglik = -0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total))
         d_mean = r / total  # dL/dmean

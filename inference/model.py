@@ -4,9 +4,13 @@ observed PC weights around the emulator's prediction.
 For observation o (one design alpha_o and load fraction t_o) and PC weight g of strain
 component c(g):
 
-    w_og ~ Normal(m_g(params, alpha_o t_o), v_og + s_og^2)
+    w_g ~ MultivariateNormal(m_g(params, alpha_o t_o), C_g + tau_g^2 R_g + T_g + S_g)   (w_g over o)
 
-with m, v the emulator's GP predictive mean and variance, and the observation noise s either
+with m_g the emulator's GP predictive mean, C_g its joint predictive covariance over the
+observations, and, when ``emulator_error`` is on (default), the emulator's error beyond it
+(:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, correlated between
+observations as R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection
+picks up. Weights g are independent, as the GPs are. S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
 - ``noise="known"``: the measurement's stated per-cell standard deviation carried through the
@@ -14,11 +18,12 @@ with m, v the emulator's GP predictive mean and variance, and the observation no
 Priors: Uniform on the emulator's training box for each of (mu, k1, k2, kappa, theta) --
 never hard-coded.
 
-GP variance: ``gp_variance="exact"`` (default) evaluates v at every leapfrog step, which costs
+GP variance: ``gp_variance="exact"`` (default) evaluates C at every leapfrog step, which costs
 O(n_gp^2) per GP (about 3 ms per step for a 600-row, 6-GP emulator; ~35 ms for 1,400 rows and
 16 GPs). ``gp_variance="mode"`` evaluates it once at the posterior mode and holds it fixed
-(cheap, O(n_gp) per step); :meth:`SkinPosterior.gp_variance_spread` then measures how much v
-really changes over the posterior draws, and summary.json reports it.
+(cheap, O(n_gp) per step); :meth:`SkinPosterior.gp_variance_spread` then measures how much its
+diagonal really changes over the posterior draws, and summary.json reports it.
+:meth:`SkinPosterior.error_budget` says which term dominates the variance of the weights.
 
 :class:`SkinPosterior` is a plain torch log density on an unconstrained vector (logit of the
 unit box, log of sigma) with the Jacobian terms; :func:`pyro_model` states the same model in
@@ -42,6 +47,7 @@ import torch
 from inference.observations import Observation
 from skinfem.config import PARAM_NAMES
 from surrogate.emulator import COMPONENTS, Emulator
+from surrogate.error_model import truncation_variance
 
 
 @dataclass
@@ -100,6 +106,9 @@ class ObservedWeights:
         noise_var: (n_obs, G) known noise variance in weight units, or None.
         truth: (5,) generating parameters when known.
         fields: the observations projected (set by :meth:`project`), or None.
+        truncation_var: (n_obs, G) variance the discarded PCA directions put on the weights
+            through the masked projection (:func:`surrogate.error_model.truncation_variance`),
+            or None (zero).
     """
 
     design_inputs: np.ndarray
@@ -107,6 +116,7 @@ class ObservedWeights:
     noise_var: np.ndarray | None
     truth: np.ndarray | None
     fields: ObservedFields | None = None
+    truncation_var: np.ndarray | None = None
 
     @classmethod
     def project(cls, emulator: Emulator, observations: list[Observation]) -> ObservedWeights:
@@ -117,17 +127,19 @@ class ObservedWeights:
             raise ValueError("observation fields do not have one value per emulator skin cell")
         for o in observations:
             check_observation(emulator, o)
-        rows, noise = [], []
+        rows, noise, truncation = [], [], []
         for o in observations:
-            w, v = [], []
+            w, v, tv = [], [], []
             for c, pca in emulator.pcas.items():
                 k = COMPONENTS.index(c)
                 weights, projector = pca.transform_masked(o.fields[:, k], o.mask)
                 w.append(weights)
+                tv.append(truncation_variance(pca, projector, o.mask))
                 if o.sd is not None:
                     per_cell = (o.sd[k] / pca.scale_[o.mask]) ** 2
                     v.append(projector**2 @ per_cell)
             rows.append(np.concatenate(w))
+            truncation.append(np.concatenate(tv))
             noise.append(np.concatenate(v) if v else None)
         known = None if any(n is None for n in noise) else np.stack(noise)
         truths = [o.truth for o in observations if o.truth is not None]
@@ -145,7 +157,33 @@ class ObservedWeights:
             noise_var=known,
             truth=truths[0] if truths else None,
             fields=fields,
+            truncation_var=np.stack(truncation),
         )
+
+
+@dataclass(frozen=True)
+class ErrorBudget:
+    """Share of the variance of the observed PC weights held by each term, at one point [-]
+    (mean over weights and observations of term / total; the shares sum to 1)."""
+
+    noise: float
+    gp: float  # the GPs' own predictive variance
+    held_out_excess: float  # the cross-validated excess (surrogate.error_model)
+    truncation: float  # what the retained PCs cannot represent, through the masked projection
+
+    @property
+    def emulator(self) -> float:
+        return self.gp + self.held_out_excess + self.truncation
+
+    def statement(self, params: np.ndarray) -> str:
+        """One sentence for the summary: which term limits the intervals."""
+        shares = (f"noise {self.noise:.0%}, GP {self.gp:.0%}, held-out excess {self.held_out_excess:.0%}, "
+                  f"PCA truncation {self.truncation:.0%} of the weights' variance")
+        if self.emulator <= self.noise:
+            return f"the measurement noise limits these intervals ({shares})"
+        near = ", ".join(f"{n} = {v:.3g}" for n, v in zip(PARAM_NAMES, params))
+        return (f"the emulator, not your measurement, limits these intervals ({shares}): refine the dataset "
+                f"near {near}")
 
 
 class SkinPosterior:
@@ -155,6 +193,8 @@ class SkinPosterior:
         noise: "halfcauchy" (unknown sigma per component) or "known" (from the measurement sd).
         noise_scale: HalfCauchy scale of sigma [PC-weight units].
         gp_variance: "mode" (fixed at the posterior mode, see module doc) or "exact".
+        emulator_error: carry the held-out excess and the PCA truncation (module doc); off:
+            the GP's own covariance only.
     """
 
     def __init__(
@@ -164,6 +204,7 @@ class SkinPosterior:
         noise: str = "halfcauchy",
         noise_scale: float = 1.0,
         gp_variance: str = "exact",
+        emulator_error: bool = True,
     ):
         if noise not in ("halfcauchy", "known"):
             raise ValueError(f"noise must be 'halfcauchy' or 'known', got '{noise}'")
@@ -178,6 +219,7 @@ class SkinPosterior:
         self.noise = noise
         self.noise_scale = noise_scale
         self.gp_variance = gp_variance
+        self.emulator_error = emulator_error
         bounds = emulator.param_bounds
         self.lower = torch.as_tensor(bounds[:, 0])
         self.span = torch.as_tensor(bounds[:, 1] - bounds[:, 0])
@@ -187,8 +229,21 @@ class SkinPosterior:
             np.concatenate([[k] * m for k, m in enumerate(emulator.n_weights.values())])
         )
         self.noise_var = None if observed.noise_var is None else torch.as_tensor(observed.noise_var)
-        self.fixed_gp_var: torch.Tensor | None = None
+        self.excess_cov, self.truncation_var = self._emulator_error_terms()
+        self.fixed_gp_cov: torch.Tensor | None = None
         self._density = None
+
+    def _emulator_error_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Held-out excess tau_g^2 R_g (G, n_obs, n_obs) and truncation variance (n_obs, G);
+        zeros when ``emulator_error`` is off or the emulator has no held-out excess."""
+        n_obs, n_weights = self.weights.shape
+        excess = self.emulator.held_out_excess
+        tau2 = np.array(excess.variance) if self.emulator_error and excess is not None else np.zeros(n_weights)
+        correlation = self.emulator.error_correlation(self.observed.design_inputs)
+        truncation = self.observed.truncation_var
+        if not self.emulator_error or truncation is None:
+            truncation = np.zeros((n_obs, n_weights))
+        return torch.as_tensor(tau2[:, None, None] * correlation), torch.as_tensor(truncation)
 
     # -- parametrisation -------------------------------------------------------------------
     @property
@@ -210,40 +265,63 @@ class SkinPosterior:
         return torch.cat([torch.logit(z), torch.log(values[..., 5:])], -1)
 
     # -- density ---------------------------------------------------------------------------
-    def predict(self, params: torch.Tensor, return_var: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """GP mean (n_obs, G) and variance at params (5,) for every observation."""
-        x = torch.cat([params.expand(len(self.design_inputs), 5), self.design_inputs], -1)
-        if return_var:
-            return self.emulator.predict_weights(x, return_var=True)
-        return self.emulator.predict_weights(x, return_var=False), None
+    def inputs(self, params: torch.Tensor) -> torch.Tensor:
+        """Raw emulator inputs (n_obs, 7) of every observation at params (5,)."""
+        return torch.cat([params.expand(len(self.design_inputs), 5), self.design_inputs], -1)
 
     @property
     def variance_is_fixed(self) -> bool:
-        """True once the GP variance is held at the mode (``gp_variance="mode"``)."""
-        return self.gp_variance == "mode" and self.fixed_gp_var is not None
+        """True once the GP covariance is held at the mode (``gp_variance="mode"``)."""
+        return self.gp_variance == "mode" and self.fixed_gp_cov is not None
 
-    def weight_moments(self, params: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and total variance (GP + observation noise) of the observed weights (n_obs, G)."""
-        mean, var = self.predict(params, return_var=not self.variance_is_fixed)
+    def gp_moments(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """GP mean (n_obs, G) and joint covariance over the observations (G, n_obs, n_obs)."""
+        x = self.inputs(params)
         if self.variance_is_fixed:
-            var = self.fixed_gp_var
-        noise = self.noise_var if self.noise == "known" else sigma[self.component_of_weight] ** 2
-        return mean, var + noise
+            return self.emulator.predict_weights(x, return_var=False), self.fixed_gp_cov
+        return self.emulator.predict_joint(x)
+
+    def noise_variance(self, sigma: torch.Tensor) -> torch.Tensor:
+        """Observation-noise variance (n_obs, G) of every weight."""
+        if self.noise == "known":
+            return self.noise_var
+        return (sigma[self.component_of_weight] ** 2).expand(self.weights.shape)
+
+    def model_covariance(self, gp_cov: torch.Tensor) -> torch.Tensor:
+        """Emulator covariance (G, n_obs, n_obs): GP + held-out excess + truncation."""
+        return gp_cov + self.excess_cov + torch.diag_embed(self.truncation_var.T)
+
+    def moments(self, params: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean (n_obs, G) and covariance over the observations (G, n_obs, n_obs) of the weights."""
+        mean, gp_cov = self.gp_moments(params)
+        return mean, self.model_covariance(gp_cov) + torch.diag_embed(self.noise_variance(sigma).T)
+
+    def whitened_residuals(self, params: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """L_g^-1 (w_g - m_g) (n_obs, G) and log diag L_g (n_obs, G), L_g the Cholesky factor of
+        weight g's covariance; NaN where a covariance is not positive definite (non-finite
+        parameters, as a line search may try)."""
+        mean, cov = self.moments(params, sigma)
+        chol, info = torch.linalg.cholesky_ex(cov)
+        if bool(info.any()):
+            nan = torch.full_like(mean, math.nan)
+            return nan, nan
+        resid = (self.weights - mean).T[..., None]
+        white = torch.linalg.solve_triangular(chol, resid, upper=False)[..., 0]
+        return white.T, torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).T
 
     def log_likelihood(self, params: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-        mean, total = self.weight_moments(params, sigma)
-        resid = self.weights - mean
-        return -0.5 * torch.sum(resid**2 / total + torch.log(2 * math.pi * total))
+        white, log_diag = self.whitened_residuals(params, sigma)
+        return -0.5 * torch.sum(white**2) - torch.sum(log_diag) - 0.5 * white.numel() * math.log(2 * math.pi)
 
     def pointwise_log_likelihood(self, values: torch.Tensor) -> torch.Tensor:
-        """Log density (n_obs, G) of each observed PC weight at constrained ``values`` (dim,).
+        """Log density (n_obs, G) of each whitened PC weight at constrained ``values`` (dim,).
 
-        The observed weights are independent normals given the parameters (not whitened: their
-        covariance is diagonal), so these terms sum to :meth:`log_likelihood`; they are the
-        elements of :func:`pyro_model`'s ``weights`` site.
+        The weights of one PC are correlated across observations (module doc): the terms are
+        those of L_g^-1 w_g, independent standard normals given the parameters, and sum to
+        :meth:`log_likelihood`; with one observation they are the weights' own densities.
         """
-        mean, total = self.weight_moments(values[:5], values[5:])
-        return dist.Normal(mean, torch.sqrt(total), validate_args=False).log_prob(self.weights)
+        white, log_diag = self.whitened_residuals(values[:5], values[5:])
+        return -0.5 * white**2 - log_diag - 0.5 * math.log(2 * math.pi)
 
     def log_prior_and_jacobian(self, u: torch.Tensor) -> torch.Tensor:
         """Log prior density of ``constrain(u)`` plus the log Jacobian of ``constrain``: (...,) for u (..., dim)."""
@@ -277,6 +355,16 @@ class SkinPosterior:
             self._density = FusedLogDensity(self)
         return fused_potential(sites["u"], self._density)
 
+    def fixed_eigen(self) -> tuple[np.ndarray, np.ndarray]:
+        """Eigen-decomposition of the fixed part of each weight's covariance (``gp_variance="mode"``):
+        Q (G, n_obs, n_obs), lambda (n_obs, G). Fixed part: the emulator covariance, plus the noise
+        when it is known; with ``noise="halfcauchy"`` the covariance is Q diag(lambda + sigma^2) Q^T."""
+        fixed = self.model_covariance(self.fixed_gp_cov)
+        if self.noise == "known":
+            fixed = fixed + torch.diag_embed(self.noise_var.T)
+        eigenvalues, vectors = torch.linalg.eigh(fixed)
+        return vectors.numpy(), eigenvalues.T.numpy()
+
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_density": None}  # rebuilt where it is used
 
@@ -290,20 +378,35 @@ class SkinPosterior:
         return np.array(out)
 
     def fix_gp_variance(self, params: np.ndarray) -> None:
-        """Hold the GP variance at its value at ``params`` (5,) (``gp_variance="mode"``)."""
+        """Hold the GP covariance at its value at ``params`` (5,) (``gp_variance="mode"``)."""
+        self.fixed_gp_cov = None
         with torch.no_grad():
-            self.fixed_gp_var = self.predict(torch.as_tensor(params), return_var=True)[1]
+            self.fixed_gp_cov = self.gp_moments(torch.as_tensor(params))[1]
+        self._density = None
 
     def gp_variance_spread(self, draws: np.ndarray, n: int = 50, seed: int = 0) -> dict:
-        """How the GP variance over ``n`` posterior draws (k, 5) compares with the fixed one."""
+        """How the GP variance (the covariance's diagonal) over ``n`` posterior draws (k, 5)
+        compares with the fixed one."""
         rng = np.random.default_rng(seed)
         pick = draws[rng.choice(len(draws), size=min(n, len(draws)), replace=False)]
+        fixed = torch.diagonal(self.fixed_gp_cov, dim1=-2, dim2=-1)
         with torch.no_grad():
             ratios = np.stack([
-                (self.predict(torch.as_tensor(p), True)[1] / self.fixed_gp_var).numpy() for p in pick
+                (self.emulator.predict_weights(self.inputs(torch.as_tensor(p)))[1].T / fixed).numpy() for p in pick
             ])
         return {"ratio_median": float(np.median(ratios)), "ratio_5": float(np.percentile(ratios, 5)),
                 "ratio_95": float(np.percentile(ratios, 95))}
+
+    def error_budget(self, values: np.ndarray) -> ErrorBudget:
+        """Which term dominates the weights' variance at constrained ``values`` (dim,)."""
+        values = torch.as_tensor(values, dtype=torch.float64)
+        with torch.no_grad():
+            gp = torch.diagonal(self.gp_moments(values[:5])[1], dim1=-2, dim2=-1).T
+            excess = torch.diagonal(self.excess_cov, dim1=-2, dim2=-1).T
+            terms = [self.noise_variance(values[5:]), gp, excess, self.truncation_var]
+            total = sum(terms)
+            shares = [float(torch.mean(term / total)) for term in terms]
+        return ErrorBudget(*shares)
 
 
 def pyro_prior(posterior: SkinPosterior) -> tuple[torch.Tensor, torch.Tensor]:
@@ -332,5 +435,5 @@ def prior_draws(posterior: SkinPosterior, n: int, seed: int) -> np.ndarray:
 def pyro_model(posterior: SkinPosterior) -> None:
     """The same model in Pyro's language (reference for :class:`SkinPosterior`)."""
     params, sigma = pyro_prior(posterior)
-    mean, total = posterior.weight_moments(params, sigma)
-    pyro.sample("weights", dist.Normal(mean, torch.sqrt(total)).to_event(2), obs=posterior.weights)
+    mean, cov = posterior.moments(params, sigma)
+    pyro.sample("weights", dist.MultivariateNormal(mean.T, covariance_matrix=cov).to_event(1), obs=posterior.weights.T)

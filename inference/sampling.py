@@ -29,14 +29,14 @@ import multiprocessing as mp
 import sys
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from inference.model import ObservedFields, SkinPosterior, prior_draws
+from inference.model import ErrorBudget, ObservedFields, SkinPosterior, prior_draws
 from skinfem.config import PARAM_NAMES
 from skinfem.outputs import write_atomically
 from surrogate.emulator import COMPONENTS
@@ -247,7 +247,8 @@ def _worker(args):
 # dimensions of the variables of posterior.nc beyond (chain, draw); datum = (observation, PC weight)
 DIMS = {
     "weights": ["datum"], "datum_observation": ["datum"], "datum_component": ["datum"], "datum_pc": ["datum"],
-    "noise_sd": ["datum"], "gp_variance": ["datum"],
+    "noise_sd": ["datum"], "gp_variance": ["datum"], "truncation_variance": ["datum"],
+    "held_out_excess": ["datum"],
     "alpha11": ["observation"], "alpha22": ["observation"], "t": ["observation"], "alpha11_t": ["observation"],
     "alpha22_t": ["observation"], "source": ["observation"], "stated_sd": ["observation", "component"],
     "cell_x": ["cell"], "cell_y": ["cell"], "strain_field": ["observation", "cell", "component"],
@@ -265,12 +266,14 @@ GROUP_ATTRS = {
         "energy": "not recorded: Pyro's NUTS does not expose the momentum of a draw",
     },
     "log_likelihood": {
-        "weights": "log density of each observed PC weight (datum: see constant_data datum_*); the data are "
-                   "independent normals given the parameters, so the terms sum to the likelihood NUTS samples",
+        "weights": "log density of each whitened PC weight (datum: see constant_data datum_*): the weights of one "
+                   "PC are correlated across observations by the emulator's error, so the terms are those of "
+                   "L^-1 w (L the Cholesky factor of that PC's covariance); they sum to the likelihood NUTS samples",
     },
     "observed_data": {
         "weights": "PC weights of the observed log strains (masked least-squares projection on the emulator's "
-                   "PCA basis); raw, not whitened: independent given the parameters, variance GP + noise",
+                   "PCA basis); raw, not whitened; covariance per PC over the observations: GP + held-out excess "
+                   "+ PCA truncation + noise (inference.model)",
     },
     "constant_data": {
         "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
@@ -300,7 +303,9 @@ def data_groups(posterior: SkinPosterior) -> dict[str, dict[str, np.ndarray]]:
     if posterior.noise == "known":
         constant["noise_sd"] = np.sqrt(observed.noise_var).ravel()
     if posterior.variance_is_fixed:
-        constant["gp_variance"] = posterior.fixed_gp_var.numpy().ravel()
+        constant["gp_variance"] = torch.diagonal(posterior.fixed_gp_cov, dim1=-2, dim2=-1).T.numpy().ravel()
+    constant["truncation_variance"] = posterior.truncation_var.numpy().ravel()
+    constant["held_out_excess"] = torch.diagonal(posterior.excess_cov, dim1=-2, dim2=-1).T.numpy().ravel()
     if observed.truth is not None:
         constant["truth"] = observed.truth
     if observed.fields is not None:
@@ -339,6 +344,7 @@ def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, s
         "noise": posterior.noise,
         "noise_scale": posterior.noise_scale,
         "gp_variance": posterior.gp_variance,
+        "emulator_error": "on" if posterior.emulator_error else "off",
     }
     prior = {"draws": f"{N_PRIOR_DRAWS} draws of inference.model.pyro_prior, seed {seed}"}
     return {"/": root, "prior": prior, **GROUP_ATTRS}
@@ -362,6 +368,8 @@ class PosteriorSamples:
     data: dict[str, dict[str, np.ndarray]]  # observed_data, constant_data (see data_groups)
     attrs: dict[str, dict]  # per group, "/" for the root (see file_attrs)
     gp_variance_spread: dict | None = None
+    error_budget: ErrorBudget | None = None
+    error_budget_at: np.ndarray | None = None  # (5,) the posterior medians it was evaluated at
 
     def posterior_dict(self) -> dict[str, np.ndarray]:
         """(chains, n_draws) draws per parameter name."""
@@ -413,6 +421,9 @@ class PosteriorSamples:
             "acceptance_rates": self.acceptance_rates,
             "seconds": self.seconds,
             "gp_variance_over_posterior": self.gp_variance_spread,
+            "error_budget": None if self.error_budget is None else asdict(self.error_budget),
+            "error_budget_statement": None if self.error_budget is None
+            else self.error_budget.statement(self.error_budget_at),
             "warnings": self.warnings(out),
         }
 
@@ -500,6 +511,8 @@ def sample_posterior(
     )
     if posterior.gp_variance == "mode":
         samples.gp_variance_spread = posterior.gp_variance_spread(samples.draws[..., :5].reshape(-1, 5))
+    medians = np.median(samples.draws.reshape(-1, posterior.dim), axis=0)
+    samples.error_budget, samples.error_budget_at = posterior.error_budget(medians), medians[:5]
     return samples
 
 

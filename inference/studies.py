@@ -30,6 +30,7 @@ class SamplerSettings:
     n_jobs: int = 2
     gp_variance: str = "exact"
     progress: bool = True
+    emulator_error: bool = True
 
 
 def posterior_of(
@@ -38,7 +39,7 @@ def posterior_of(
 ) -> dict:
     """Sample one posterior; write its outputs to ``out`` if given. Returns the summary."""
     posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), noise=noise,
-                              gp_variance=settings.gp_variance)
+                              gp_variance=settings.gp_variance, emulator_error=settings.emulator_error)
     samples = sample_posterior(posterior, chains=settings.chains, warmup=settings.warmup,
                                draws=settings.draws, seed=settings.seed, n_jobs=settings.n_jobs,
                                progress=settings.progress)

@@ -34,6 +34,7 @@ import torch
 
 from skinfem.io import STATUS_OK, StrainDataset
 from skinfem.outputs import write_text
+from surrogate.error_model import HeldOutExcess, cross_validated_excess, design_correlation
 from surrogate.gp import GPBank, fit_gps
 from surrogate.pca import StrainPCA
 
@@ -108,6 +109,8 @@ class EmulatorProvenance:
         versions: package versions at fit time (skinid, scikit-learn, torch, numpy).
         validation: per component, the scores on the held-out materials; None until
             :func:`surrogate.validation.validate_directory` has run.
+        held_out_excess: the GPs' error beyond their own variance on left-out training
+            materials (:mod:`surrogate.error_model`); None for emulators fitted before it.
     """
 
     dataset: Path
@@ -125,6 +128,7 @@ class EmulatorProvenance:
     fit_seconds: dict[str, float]
     versions: dict[str, str]
     validation: dict[str, HeldOutScores] | None = None
+    held_out_excess: HeldOutExcess | None = None
 
     def to_json(self) -> dict:
         """The ``meta.json`` entries (JSON types), as :meth:`from_json` reads them."""
@@ -146,6 +150,8 @@ class EmulatorProvenance:
         }
         if self.validation is not None:
             out["validation"] = {c: asdict(s) for c, s in self.validation.items()}
+        if self.held_out_excess is not None:
+            out["held_out_excess"] = self.held_out_excess.to_json()
         return out
 
     @classmethod
@@ -155,7 +161,7 @@ class EmulatorProvenance:
         Raises:
             KeyError: an entry is missing.
         """
-        validation = meta.get("validation")
+        validation, excess = meta.get("validation"), meta.get("held_out_excess")
         return cls(
             dataset=Path(meta["dataset"]),
             dataset_config=meta["dataset_config"],
@@ -172,6 +178,7 @@ class EmulatorProvenance:
             fit_seconds=dict(meta["fit_seconds"]),
             versions=dict(meta["versions"]),
             validation=None if validation is None else {c: HeldOutScores(**s) for c, s in validation.items()},
+            held_out_excess=None if excess is None else HeldOutExcess.from_json(excess),
         )
 
     def validated(self, scores: dict[str, HeldOutScores]) -> EmulatorProvenance:
@@ -248,6 +255,21 @@ class Emulator:
     def predict_weights(self, x: torch.Tensor, return_var: bool = True):
         """PC weights at raw inputs x (B, 7) (torch, differentiable): mean (B, G)[, var (B, G)]."""
         return self.gps(self.scale(x), return_var=return_var)
+
+    def predict_joint(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """PC weights at raw inputs x (B, 7): mean (B, G) and each GP's joint covariance (G, B, B)."""
+        return self.gps.joint(self.scale(x))
+
+    @property
+    def held_out_excess(self) -> HeldOutExcess | None:
+        """The GPs' cross-validated error beyond their own variance (None for older emulators)."""
+        return self.provenance.held_out_excess
+
+    def error_correlation(self, design_inputs: np.ndarray) -> np.ndarray:
+        """(G, n, n) correlation of one material's emulator error between n observations with raw
+        design inputs (alpha11 t, alpha22 t) (n, 2) (:func:`surrogate.error_model.design_correlation`)."""
+        lower, upper = self.lower[5:], self.upper[5:]
+        return design_correlation(self.gps, (np.asarray(design_inputs) - lower) / (upper - lower))
 
     def predict_fields(self, params, alpha, t) -> np.ndarray:
         """Mean strain fields (B, n_cells, n_comp) for params (B, 5), alpha (2,) or (B, 2), t."""
@@ -397,6 +419,9 @@ def fit_emulator(
     x_unit = (rows.inputs[subset] - lower) / (upper - lower)
     pca_seconds = time.perf_counter() - start
     gps = fit_gps(x_unit, weights[subset], restarts=restarts, seed=seed, n_jobs=n_jobs)
+    bank = GPBank.from_sklearn(gps)
+    excess = cross_validated_excess(bank, (rows.inputs - lower) / (upper - lower), weights, rows.index[:, 0],
+                                    subset, seed=seed)
     provenance = EmulatorProvenance(
         dataset=data.path.resolve(), dataset_config=data.config.to_toml(), mesh_sha256=data.mesh_sha256,
         block_half_length=data.config.mesh.length / 2, train_materials=tuple(train.tolist()),
@@ -405,10 +430,11 @@ def fit_emulator(
         explained_variance_ratio={c: tuple(p.explained_variance_ratio_[:20].tolist()) for c, p in pcas.items()},
         fit_seconds={"pca": pca_seconds, "total": time.perf_counter() - start},
         versions={n: metadata.version(n) for n in ("skinid", "scikit-learn", "torch", "numpy")},
+        held_out_excess=excess,
     )
     emulator = Emulator(
         pcas=pcas,
-        gps=GPBank.from_sklearn(gps),
+        gps=bank,
         lower=lower,
         upper=upper,
         xy=data.xy,

@@ -161,6 +161,37 @@ class GPBank(torch.nn.Module):
             return torch.exp_(sq.clamp_min_(0.0).mul_(-0.5)).mul_(self.constant[:, None, None])
         return self.constant[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
 
+    def conditioned(self, x: np.ndarray, y: np.ndarray) -> GPBank:
+        """The same GPs (kernel hyper-parameters and target standardisation) conditioned on other
+        training rows: unit-box inputs x (n, d), targets y (n, G) in target units.
+
+        Used to predict rows whose material is left out of the training set
+        (:func:`surrogate.error_model.cross_validated_excess`) without refitting the kernels.
+        """
+        n, g = len(x), self.n_gps
+        arrays = {**self.to_arrays(), "x_train": x, "alpha": np.zeros((g, n)), "chol": np.zeros((g, n, n))}
+        probe = GPBank(arrays)
+        with torch.no_grad():
+            k = probe.cross_covariance(torch.as_tensor(x, dtype=torch.float64))
+            k += torch.diag_embed(self.noise[:, None].expand(g, n))
+            chol = torch.linalg.cholesky(k)
+            target = (torch.as_tensor(y, dtype=torch.float64) - self.y_mean) / self.y_std
+            alpha = torch.cholesky_solve(target.T[..., None], chol)[..., 0]
+        return GPBank({**arrays, "alpha": alpha.numpy(), "chol": chol.numpy()})
+
+    def joint(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predictive mean (B, G) and joint covariance (G, B, B) of each GP at unit-box inputs
+        x (B, d); the white noise is on the diagonal only. ``forward``'s variance is its diagonal."""
+        x = x.to(torch.float64)
+        k = self.cross_covariance(x)
+        mean = torch.einsum("gbn,gn->bg", k, self.alpha) * self.y_std + self.y_mean
+        v = torch.linalg.solve_triangular(self.chol, k.transpose(1, 2), upper=False)  # (G, n, B)
+        a = x[None] / self.length_scale[:, None]  # (G, B, d)
+        sq = ((a[:, :, None] - a[:, None]) ** 2).sum(-1)
+        prior = self.constant[:, None, None] * torch.exp(-0.5 * sq)
+        prior = prior + torch.diag_embed(self.noise[:, None].expand(-1, len(x)))
+        return mean, (prior - v.transpose(1, 2) @ v) * (self.y_std**2)[:, None, None]
+
     def forward(self, x: torch.Tensor, return_var: bool = True):
         """Predictive mean (B, G) and, if asked, variance (B, G) at unit-box inputs x (B, d)."""
         k = self.cross_covariance(x.to(torch.float64))

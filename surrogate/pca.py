@@ -20,7 +20,14 @@ class StrainPCA:
         explained_variance_ratio_: (min(n_rows, n_cells),) of every direction, descending;
             the first M belong to the retained components.
         n_components_: M.
+        discarded_components_: (K, n_cells) the K <= 20 leading directions after the first M
+            (empty for PCAs saved before they were kept).
+        discarded_variance_: (K,) variance of the training fields along them [standardised
+            units^2]; with ``discarded_components_`` it describes what the retained PCs cannot
+            represent (see :func:`surrogate.error_model.truncation_variance`).
     """
+
+    N_DISCARDED = 20
 
     def __init__(self, n_components: int | float = 0.99):
         self.n_components = n_components
@@ -51,6 +58,8 @@ class StrainPCA:
         # sign convention: the largest-magnitude entry of each direction is positive
         signs = np.sign(vt[np.arange(m), np.argmax(np.abs(vt[:m]), axis=1)])
         self.components_ = vt[:m] * signs[:, None]
+        self.discarded_components_ = vt[m : m + self.N_DISCARDED]
+        self.discarded_variance_ = variance[m : m + self.N_DISCARDED] / len(fields)
         return self
 
     def transform(self, fields: np.ndarray) -> np.ndarray:
@@ -91,6 +100,8 @@ class StrainPCA:
             f"{prefix}scale": self.scale_,
             f"{prefix}components": self.components_,
             f"{prefix}explained_variance_ratio": self.explained_variance_ratio_,
+            f"{prefix}discarded_components": self.discarded_components_,
+            f"{prefix}discarded_variance": self.discarded_variance_,
         }
 
     @classmethod
@@ -101,4 +112,8 @@ class StrainPCA:
         pca.components_ = np.asarray(arrays[f"{prefix}components"])
         pca.explained_variance_ratio_ = np.asarray(arrays[f"{prefix}explained_variance_ratio"])
         pca.n_components_ = len(pca.components_)
+        discarded = f"{prefix}discarded_components"
+        n_cells = pca.components_.shape[1]
+        pca.discarded_components_ = np.asarray(arrays[discarded]) if discarded in arrays else np.zeros((0, n_cells))
+        pca.discarded_variance_ = np.asarray(arrays[f"{prefix}discarded_variance"]) if discarded in arrays else np.zeros(0)
         return pca

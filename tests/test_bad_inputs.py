@@ -50,6 +50,7 @@ COMPUTING = {  # what a refusal must come before: module attribute -> what it co
     "inference.studies.sample_posterior": "MCMC sampling",
     "inference.studies.noise_study": "the noise study",
     "inference.studies.test_set_study": "the test-set study",
+    "inference.coverage.coverage_study": "the coverage study",
     "inference.noise.add_noise": "the noisy dataset",
     "inference.criticism.check.run_check": "the check",
 }
@@ -230,6 +231,7 @@ INFER_DATA = "infer --emulator {emu} --out {out} --data {data} --material 0"
 FIT = "surrogate fit --data {data} --out {out}"
 TEST_SET = "study test-set --emulator {emu} --data {data} --out {out}"
 STUDY_NOISE = "study noise --data {data} --out {out} --designs 0"
+COVERAGE = "study coverage --emulator {emu} --data {data} --out {out}"
 NOISE = "noise --data {data} --length 1 --level 0.05 --out {tmp}/noisy.h5"
 SWEEP = "sweep --quiet --out {tmp}/data.h5 --config {tmp}/c.toml"
 SIMULATE = "simulate --mu 0.0012 --k1 0.017 --k2 12 --kappa 0.28 --alpha 0.05 -0.05"
@@ -408,6 +410,12 @@ CASES = {
     "study-test-set-dataset-of-another-mesh": (
         "study test-set --emulator {emu} --data {tmp}/bad.h5 --designs 0 --out {out}",
         "was simulated on another mesh than the emulator's dataset", dataset(other_mesh)),
+    "study-coverage-n-beyond-the-frames": (f"{COVERAGE} --setup frames --n 3",
+                                           "--n must be in [1, 2] for the frames setup", None),
+    "study-coverage-n-beyond-the-designs": (f"{COVERAGE} --setup membranes --n 5",
+                                            "--n must be in [1, 2] for the membranes setup", None),
+    "study-coverage-noise-negative": (f"{COVERAGE} --noise-sd -0.001", "--noise-sd must be >= 0, got -0.001", None),
+    "study-coverage-no-noise-seed": (f"{COVERAGE} --noise-seeds 0", "--noise-seeds must be >= 1, got 0", None),
     "study-setups-design-out-of-range": ("study setups --emulator {emu} --data {data} --designs 9 --out {out}",
                                          "design 9 is not in [0, 2)", None),
     "study-noise-design-out-of-range": (STUDY_NOISE.replace("--designs 0", "--designs 9"),

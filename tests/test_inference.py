@@ -101,6 +101,15 @@ class LinearEmulator:
         mean = x @ self.A + self.b
         return (mean, torch.full_like(mean, self.var)) if return_var else mean
 
+    held_out_excess = None
+
+    def predict_joint(self, x):
+        mean = x @ self.A + self.b
+        return mean, self.var * torch.eye(len(x), dtype=mean.dtype).expand(mean.shape[1], -1, -1)
+
+    def error_correlation(self, design_inputs):
+        return np.ones((6, len(design_inputs), len(design_inputs)))
+
 
 def test_sampler_matches_an_exact_linear_gaussian_posterior():
     """Known noise, linear mean, a prior box far wider than the posterior: the posterior is

@@ -128,8 +128,8 @@ def test_per_datum_log_likelihood_sums_to_the_models_likelihood(run, known_run):
             assert terms[c, d].sum() == pytest.approx(expected, rel=1e-10)
             sites = {n: values[k] for k, n in enumerate(post.names)}
             trace = poutine.trace(poutine.condition(pyro_model, data=sites)).get_trace(post)
-            assert terms[c, d].sum() == pytest.approx(float(trace.nodes["weights"]["fn"].log_prob(post.weights)),
-                                                      rel=1e-10)
+            node = trace.nodes["weights"]
+            assert terms[c, d].sum() == pytest.approx(float(node["fn"].log_prob(node["value"])), rel=1e-10)
             lp = -float(post.potential({"u": post.unconstrain(values)}))  # stored values: logit round-off
             assert float(dt["sample_stats"]["lp"][c, d]) == pytest.approx(lp, rel=1e-5)
         u = torch.as_tensor(np.random.default_rng(0).normal(size=(3, post.dim)))
@@ -174,7 +174,11 @@ def test_known_noise_and_fixed_gp_variance_are_recorded(known_run):
     post, _, dt = known_run
     constant = dt["constant_data"]
     np.testing.assert_allclose(constant["noise_sd"], np.sqrt(post.noise_var.numpy()).ravel())
-    np.testing.assert_allclose(constant["gp_variance"], post.fixed_gp_var.numpy().ravel())
+    gp = torch.diagonal(post.fixed_gp_cov, dim1=-2, dim2=-1).T  # (n_obs, G)
+    np.testing.assert_allclose(constant["gp_variance"], gp.numpy().ravel())
+    np.testing.assert_allclose(constant["held_out_excess"],
+                               np.tile(post.emulator.held_out_excess.variance, len(post.weights)))
+    assert dt.attrs["emulator_error"] == "on"
     np.testing.assert_allclose(constant["stated_sd"], [[1e-4, 2e-4, 1e-4]])
     assert set(dt["posterior"].data_vars) == set(PARAM_NAMES)
     assert dt.attrs["noise"] == "known" and dt.attrs["gp_variance"] == "mode"

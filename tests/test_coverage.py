@@ -1,0 +1,64 @@
+"""The coverage study (inference.coverage): its cases, its statistics against their definitions,
+and a resumable run on the small emulator's held-out materials."""
+
+import json
+
+import numpy as np
+import pytest
+
+from inference import coverage
+from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study, summarise
+from inference.studies import SamplerSettings, spread_designs
+from skinfem.io import StrainDataset
+from surrogate.emulator import Emulator
+
+
+@pytest.fixture(scope="module")
+def data(small_dataset):
+    return StrainDataset.open(small_dataset)
+
+
+def test_cases_cover_every_test_material_and_starting_design(data):
+    test = np.flatnonzero(data.split == 1)
+    n_des = len(data.designs)
+    single = cases_of(data, "single")
+    assert len(single) == len(test) * n_des and {c.frames for c in single} == {(-1,)}
+    frames = cases_of(data, "frames", n=2, noise_seeds=3)
+    assert len(frames) == 3 * len(test) * n_des and {c.frames for c in frames} == {(-2, -1)}
+    membranes = cases_of(data, "membranes", n=2)
+    assert [c.designs for c in membranes[:n_des]] == [tuple(spread_designs(data.designs, j, 2)) for j in range(n_des)]
+    with pytest.raises(ValueError, match="setup must be one of"):
+        cases_of(data, "two frames")
+
+
+def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
+    hits = [True] * 45 + [False] * 5  # 90 % of 50
+    results = [CaseResult(rank=(1,) * 5, covered_50=(h,) * 5, covered_95=(True,) * 5,
+                          interval_share_95=(0.5,) * 5, divergences=0) for h in hits]
+    summary = summarise(results, "single", 3, 0.0, SamplerSettings())
+    mu = summary["parameters"]["mu"]
+    assert summary["n_cases"] == 50
+    assert mu["coverage_50"] == 0.9 and mu["binomial_sd_50"] == pytest.approx(np.sqrt(0.9 * 0.1 / 50))
+    assert mu["coverage_95"] == 1.0 and not mu["meets_goal"]  # 50 % intervals holding 90 %: too wide
+
+
+@pytest.mark.slow
+def test_a_study_ranks_the_truth_and_resumes_without_recomputing(small_emulator, data, tmp_path, monkeypatch):
+    emulator = Emulator.load(small_emulator)
+    settings = SamplerSettings(chains=2, warmup=100, draws=100, n_jobs=2, gp_variance="mode", progress=False)
+    first = int(np.flatnonzero(data.split == 1)[0])
+    summary = coverage_study(emulator, data, "single", settings, tmp_path, materials=[first])
+    n_cases = len(data.designs)
+    assert summary["n_cases"] == n_cases and (tmp_path / "ranks.png").stat().st_size > 10_000
+    cases = sorted((tmp_path / "cases").glob("*.json"))
+    assert len(cases) == n_cases
+    for path in cases:
+        case = json.loads(path.read_text())
+        assert all(0 <= r <= RANK_DRAWS for r in case["rank"])
+        # a truth inside the central 50 % lies between the 25th and 75th percentile ranks
+        for rank, inside in zip(case["rank"], case["covered_50"]):
+            if inside:
+                assert 0.12 * RANK_DRAWS <= rank <= 0.88 * RANK_DRAWS  # thinning: +-4 sd
+    monkeypatch.setattr(coverage, "run_case", lambda *a, **k: pytest.fail("a finished case was recomputed"))
+    again = coverage_study(emulator, data, "single", settings, tmp_path, materials=[first])
+    assert again["parameters"] == summary["parameters"]
