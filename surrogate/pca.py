@@ -112,8 +112,10 @@ class StrainPCA:
         pca.components_ = np.asarray(arrays[f"{prefix}components"])
         pca.explained_variance_ratio_ = np.asarray(arrays[f"{prefix}explained_variance_ratio"])
         pca.n_components_ = len(pca.components_)
-        discarded = f"{prefix}discarded_components"
-        n_cells = pca.components_.shape[1]
-        pca.discarded_components_ = np.asarray(arrays[discarded]) if discarded in arrays else np.zeros((0, n_cells))
-        pca.discarded_variance_ = np.asarray(arrays[f"{prefix}discarded_variance"]) if discarded in arrays else np.zeros(0)
+        if f"{prefix}discarded_components" in arrays:
+            pca.discarded_components_ = np.asarray(arrays[f"{prefix}discarded_components"])
+            pca.discarded_variance_ = np.asarray(arrays[f"{prefix}discarded_variance"])
+        else:  # saved before the discarded directions were kept
+            pca.discarded_components_ = np.zeros((0, pca.components_.shape[1]))
+            pca.discarded_variance_ = np.zeros(0)
         return pca

@@ -156,8 +156,8 @@ def emulator_and_observation():
 
     from inference.model import ObservedWeights
     from inference.observations import Observation
-    from surrogate.error_model import HeldOutExcess
     from surrogate.emulator import Emulator, EmulatorProvenance
+    from surrogate.error_model import HeldOutExcess
 
     rng = np.random.default_rng(6)
     n_cells = 30
