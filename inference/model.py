@@ -4,12 +4,12 @@ observed PC weights around the emulator's prediction.
 For observation o (one design alpha_o and load fraction t_o) and PC weight g of strain
 component c(g):
 
-    w_g ~ MultivariateNormal(m_g(params, alpha_o t_o), C_g + tau_g^2 R_g + T_g + S_g)   (w_g over o)
+    w_g ~ MultivariateNormal(m_g(params, alpha_o t_o), C_g + tau_g^2 (s s^T) * R_g + T_g + S_g)   (over o)
 
 with m_g the emulator's GP predictive mean, C_g its joint predictive covariance over the
 observations, and, when ``emulator_error`` is on (default), the emulator's error beyond it
-(:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, correlated between
-observations as R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection
+(:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, scaled by each
+observation's load s_o = |alpha_o t_o| / |alpha t|_max and correlated between observations as R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection
 picks up. Weights g are independent, as the GPs are. S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
@@ -234,12 +234,16 @@ class SkinPosterior:
         self._density = None
 
     def _emulator_error_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Held-out excess tau_g^2 R_g (G, n_obs, n_obs) and truncation variance (n_obs, G);
+        """Held-out excess tau_g^2 s s^T R_g (G, n_obs, n_obs) and truncation variance (n_obs, G);
         zeros when ``emulator_error`` is off or the emulator has no held-out excess."""
         n_obs, n_weights = self.weights.shape
         excess = self.emulator.held_out_excess
-        tau2 = np.array(excess.variance) if self.emulator_error and excess is not None else np.zeros(n_weights)
-        correlation = self.emulator.error_correlation(self.observed.design_inputs)
+        if self.emulator_error and excess is not None:
+            tau2 = np.array(excess.variance)
+            scale = excess.load_scale(self.observed.design_inputs)
+        else:
+            tau2, scale = np.zeros(n_weights), np.zeros(n_obs)
+        correlation = self.emulator.error_correlation(self.observed.design_inputs) * np.outer(scale, scale)
         truncation = self.observed.truncation_var
         if not self.emulator_error or truncation is None:
             truncation = np.zeros((n_obs, n_weights))

@@ -60,11 +60,12 @@ class StandardisedGP:
         return self.y_std * mean + self.y_mean, self.y_std * std
 
 
-def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0) -> StandardisedGP:
-    """Fit one GP: ``x`` (n, d) in the unit box, ``y`` (n,) one PC weight."""
+def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0, kernel=None) -> StandardisedGP:
+    """Fit one GP: ``x`` (n, d) in the unit box, ``y`` (n,) one PC weight; the optimizer starts
+    from ``kernel`` (a fitted GP's ``kernel_``, same bounds) or from :func:`make_kernel`."""
     y_mean, y_std = standardisation(y)
     gp = GaussianProcessRegressor(
-        kernel=make_kernel(x.shape[1]),
+        kernel=make_kernel(x.shape[1]) if kernel is None else kernel,
         normalize_y=False,  # standardised here: the same model as normalize_y=True
         n_restarts_optimizer=restarts,
         random_state=seed,
@@ -76,11 +77,13 @@ def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0) -> St
 
 
 def fit_gps(
-    x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0, n_jobs: int = -1
+    x: np.ndarray, y: np.ndarray, restarts: int = 2, seed: int = 0, n_jobs: int = -1, kernels: list | None = None
 ) -> list[StandardisedGP]:
-    """Fit one GP per column of ``y`` (n, G), in parallel processes."""
+    """Fit one GP per column of ``y`` (n, G), in parallel processes; ``kernels``: the optimizer's
+    starting kernel per GP (see :func:`fit_gp`)."""
+    kernels = [None] * y.shape[1] if kernels is None else kernels
     return Parallel(n_jobs=n_jobs)(
-        delayed(fit_gp)(x, y[:, g], restarts, seed + g) for g in range(y.shape[1])
+        delayed(fit_gp)(x, y[:, g], restarts, seed + g, kernels[g]) for g in range(y.shape[1])
     )
 
 
@@ -160,24 +163,6 @@ class GPBank(torch.nn.Module):
         if not sq.requires_grad:  # prediction only: in place, no temporaries
             return torch.exp_(sq.clamp_min_(0.0).mul_(-0.5)).mul_(self.constant[:, None, None])
         return self.constant[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
-
-    def conditioned(self, x: np.ndarray, y: np.ndarray) -> GPBank:
-        """The same GPs (kernel hyper-parameters and target standardisation) conditioned on other
-        training rows: unit-box inputs x (n, d), targets y (n, G) in target units.
-
-        Used to predict rows whose material is left out of the training set
-        (:func:`surrogate.error_model.cross_validated_excess`) without refitting the kernels.
-        """
-        n, g = len(x), self.n_gps
-        arrays = {**self.to_arrays(), "x_train": x, "alpha": np.zeros((g, n)), "chol": np.zeros((g, n, n))}
-        probe = GPBank(arrays)
-        with torch.no_grad():
-            k = probe.cross_covariance(torch.as_tensor(x, dtype=torch.float64))
-            k += torch.diag_embed(self.noise[:, None].expand(g, n))
-            chol = torch.linalg.cholesky(k)
-            target = (torch.as_tensor(y, dtype=torch.float64) - self.y_mean) / self.y_std
-            alpha = torch.cholesky_solve(target.T[..., None], chol)[..., 0]
-        return GPBank({**arrays, "alpha": alpha.numpy(), "chol": chol.numpy()})
 
     def joint(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Predictive mean (B, G) and joint covariance (G, B, B) of each GP at unit-box inputs

@@ -53,39 +53,44 @@ def test_joint_covariance_is_scikit_learns_and_its_diagonal_the_variance():
                                rtol=1e-10, atol=1e-14)
 
 
-def test_a_bank_conditioned_on_fewer_rows_is_a_refit_with_the_same_kernel():
-    rng = np.random.default_rng(1)
-    x, y, _ = material_rows(rng, 10, 4, 0.0)
-    gps = [fixed_gp(x, y[:, g]) for g in range(2)]
-    bank = GPBank.from_sklearn(gps)
-    keep = np.arange(0, len(x), 2)
-    reduced = bank.conditioned(x[keep], y[keep])
-    x_new = torch.as_tensor(rng.uniform(size=(6, 7)))
-    mean, var = reduced(x_new)
-    for g, gp in enumerate(gps):  # the same kernel and standardisation, fitted on the kept rows only
-        ref = GaussianProcessRegressor(gp.gp.kernel_, optimizer=None).fit(x[keep], (y[keep, g] - gp.y_mean) / gp.y_std)
-        m_ref, s_ref = ref.predict(x_new.numpy(), return_std=True)
-        np.testing.assert_allclose(mean[:, g].numpy(), gp.y_std * m_ref + gp.y_mean, rtol=1e-8, atol=1e-10)
-        np.testing.assert_allclose(var[:, g].numpy(), (gp.y_std * s_ref) ** 2, rtol=1e-8, atol=1e-12)
-
-
-def test_excess_variance_closed_form():
+def test_excess_variance_is_the_maximum_likelihood_closed_form():
+    """With one GP variance v and one load scale s the likelihood of N(0, v + tau^2 s^2) is
+    maximal at tau^2 = (mean(r^2) - v) / s^2, or 0 when v already exceeds mean(r^2)."""
     error = np.array([0.3, -0.1, 0.2, -0.4])
-    assert excess_variance(error, np.full(4, 0.01)) == pytest.approx(np.mean(error**2) - 0.01, rel=1e-9)
-    assert excess_variance(error, np.full(4, 1.0)) == 0.0  # the GP's own variance already covers it
+    for s in (1.0, 0.5):
+        tau2 = excess_variance(error, np.full(4, 0.01), np.full(4, s))
+        assert tau2 == pytest.approx((np.mean(error**2) - 0.01) / s**2, rel=1e-5)
+    assert excess_variance(error, np.full(4, 1.0), np.ones(4)) == 0.0
+
+
+def test_an_error_that_grows_with_the_load_is_calibrated_at_the_largest_loads():
+    """Errors proportional to the load (sd 0.1 s) and a small constant GP variance: the excess
+    scaled by s fits the rows of largest load, where a constant excess would be too small."""
+    rng = np.random.default_rng(8)
+    scale = rng.uniform(0.1, 1.0, 4000)
+    error, variance = 0.1 * scale * rng.normal(size=4000), np.full(4000, 1e-4)
+    tau2 = excess_variance(error, variance, scale)
+    assert tau2 == pytest.approx(0.01, rel=0.1)
+    top = scale > 0.8
+    assert np.sqrt(np.mean(error[top] ** 2 / (variance[top] + tau2 * scale[top] ** 2))) == pytest.approx(1, abs=0.1)
+    constant = excess_variance(error, variance, np.ones(4000))
+    assert np.sqrt(np.mean(error[top] ** 2 / (variance[top] + constant))) > 1.3
 
 
 def test_cross_validated_excess_calibrates_an_overconfident_gp_on_fresh_materials():
-    """Each material carries an offset the GP cannot know (sd 0.15) and the GP (too long a
-    length scale, no noise) is sure of itself: by material-wise cross-validation the excess is
-    found, and on materials drawn afresh the standardised errors have an RMS of 1 with it (within
-    the +-35 % that 60 training materials allow), ten times more without."""
+    """Each material carries an offset the GP cannot know (sd 0.15) and the GP (a fixed kernel:
+    too long a length scale, no noise) is sure of itself: by material-wise cross-validation the
+    excess is found, and on materials drawn afresh the standardised errors have an RMS of 1 with
+    it (within the +-35 % that 60 training materials allow), ten times more without."""
     rng = np.random.default_rng(2)
     x, y, materials = material_rows(rng, 60, 6, 0.15)
     subset = np.sort(rng.choice(len(x), 200, replace=False))
-    bank = GPBank.from_sklearn([fixed_gp(x[subset], y[subset, g], length=1.0) for g in range(2)])
-    excess = cross_validated_excess(bank, x, y, materials, subset, seed=0)
-    assert excess.n_rows == len(x) and excess.folds == 5
+    def fit(x_rows, y_rows):
+        return GPBank.from_sklearn([fixed_gp(x_rows, y_rows[:, g], length=1.0) for g in range(2)])
+
+    bank = fit(x[subset], y[subset])
+    excess = cross_validated_excess(fit, x, y, materials, np.ones((len(x), 2)), subset, seed=0)
+    assert excess.n_rows == len(x) and excess.folds == 5 and excess.load_reference == pytest.approx(np.sqrt(2))
     x_new, y_new, _ = material_rows(np.random.default_rng(3), 200, 3, 0.15)
     with torch.no_grad():
         mean, var = bank(torch.as_tensor(x_new))
@@ -140,7 +145,8 @@ def test_likelihood_is_the_multivariate_normal_of_the_summed_covariances(emulato
     x = torch.cat([params.expand(2, 5), torch.as_tensor(observed.design_inputs)], -1)
     mean, gp_cov = emulator.predict_joint(x)
     tau2 = np.array(emulator.held_out_excess.variance)
-    correlation = emulator.error_correlation(observed.design_inputs)
+    load = np.linalg.norm(observed.design_inputs, axis=1) / 1.2  # |alpha t| / the reference load
+    correlation = emulator.error_correlation(observed.design_inputs) * np.outer(load, load)
     expected = 0.0
     for g in range(mean.shape[1]):
         cov = (gp_cov[g].detach().numpy() + tau2[g] * correlation[g] + np.diag(observed.truncation_var[:, g])
@@ -171,7 +177,8 @@ def emulator_and_observation():
         explained_variance_ratio={}, fit_seconds={}, versions={})
     emulator = Emulator(pcas={"xx": pca}, gps=bank, lower=np.zeros(7), upper=np.ones(7),
                         xy=rng.uniform(-20, 20, size=(n_cells, 2)), volume=np.ones(n_cells),
-                        provenance=replace(provenance, held_out_excess=HeldOutExcess((0.02, 0.005), (2.0, 1.4), 5, 80)))
+                        provenance=replace(provenance,
+                                           held_out_excess=HeldOutExcess((0.02, 0.005), (2.0, 1.4), 5, 80, 1.2)))
     strain = np.zeros((n_cells, 3))
     mask = rng.uniform(size=n_cells) > 0.25
     observations = [Observation(alpha=np.array([0.4, 0.5]), t=t, fields=strain + fields[k, :, None], mask=mask,
