@@ -10,7 +10,8 @@ with m_g the emulator's GP predictive mean, C_g its joint predictive covariance 
 observations, and, when ``emulator_error`` is on (default), the emulator's error beyond it
 (:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, scaled by each
 observation's load s_o = |alpha_o t_o| / |alpha t|_max and correlated between observations as
-R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection picks up. Weights g are independent, as the GPs are. S_g is the observation noise, either
+R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection picks up.
+Weights g are independent, as the GPs are. S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
 - ``noise="known"``: the measurement's stated per-cell standard deviation carried through the
