@@ -36,6 +36,8 @@ def main() -> None:
     parser.add_argument("--noise-sd", type=float, nargs="+", default=[0.0])
     parser.add_argument("--emulator-error", nargs="+", choices=["on", "off"], default=["on"])
     parser.add_argument("--store", type=Path, default=Path("out/coverage"))
+    parser.add_argument("--materials", type=int, nargs="+",
+                        help="only these test materials (a second process can share a study's cases)")
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     RESULTS.mkdir(exist_ok=True)
@@ -46,7 +48,8 @@ def main() -> None:
             for setup in args.setups:
                 label = f"{setup}_noise{sd:g}_error-{error}"
                 start = time.perf_counter()
-                summary = coverage_study(emulator, data, setup, settings, args.store / label, noise_sd=sd)
+                summary = coverage_study(emulator, data, setup, settings, args.store / label, noise_sd=sd,
+                                         materials=args.materials)
                 summary["seconds_per_case_this_run"] = (time.perf_counter() - start) / summary["n_cases"]
                 summary["emulator"] = str(args.emulator)
                 (RESULTS / f"{label}.json").write_text(json.dumps(summary, indent=2) + "\n")
