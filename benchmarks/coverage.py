@@ -50,12 +50,11 @@ def main() -> None:
                 start = time.perf_counter()
                 summary = coverage_study(emulator, data, setup, settings, args.store / label, noise_sd=sd,
                                          materials=args.materials)
-                summary["seconds_per_case_this_run"] = (time.perf_counter() - start) / summary["n_cases"]
-                summary["emulator"] = str(args.emulator)
-                (RESULTS / f"{label}.json").write_text(json.dumps(summary, indent=2) + "\n")
+                seconds = (time.perf_counter() - start) / summary.n_cases
+                record = {**summary.to_json(), "seconds_per_case_this_run": seconds, "emulator": str(args.emulator)}
+                (RESULTS / f"{label}.json").write_text(json.dumps(record, indent=2) + "\n")
                 shutil.copy(args.store / label / "ranks.png", RESULTS / f"ranks_{label}.png")
-                print(label, {n: (e["coverage_50"], e["coverage_95"]) for n, e in summary["parameters"].items()},
-                      flush=True)
+                print(label, {n: (e.coverage_50, e.coverage_95) for n, e in summary.parameters.items()}, flush=True)
 
 
 if __name__ == "__main__":

@@ -351,9 +351,10 @@ def _coverage(args, emulator, data) -> None:
 
     res = coverage_study(emulator, data, args.setup, settings_of(args), args.out, args.n, args.noise_sd,
                          args.noise_seeds, _ints(args.materials, "--materials"))
-    print(json.dumps({name: {k: round(v, 3) for k, v in e.items() if k.startswith("coverage")}
-                      for name, e in res["parameters"].items()}, indent=2))
-    print(f"{res['n_cases']} cases; wrote {args.out}/coverage.json and ranks.png")
+    for name, e in res.parameters.items():
+        print(f"{name:>6}: 95 % intervals cover {e.coverage_95:.2f} (sd {e.binomial_sd_95:.2f}), "
+              f"50 % intervals {e.coverage_50:.2f} (sd {e.binomial_sd_50:.2f})")
+    print(f"{res.n_cases} cases; wrote {args.out}/coverage.json and ranks.png")
 
 
 def _noise_study(args, data) -> None:

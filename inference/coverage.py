@@ -115,7 +115,7 @@ def run_case(emulator: Emulator, data: StrainDataset, case: CoverageCase, settin
 
 def coverage_study(emulator: Emulator, data: StrainDataset, setup: str, settings: SamplerSettings,
                    out: Path | str, n: int = 3, noise_sd: float = 0.0, noise_seeds: int = 1,
-                   materials: list[int] | None = None) -> dict:
+                   materials: list[int] | None = None) -> CoverageSummary:
     """Run (or resume) every case of ``setup``; write ``coverage.json`` and ``ranks.png``."""
     out = Path(out)
     results = []
@@ -127,28 +127,54 @@ def coverage_study(emulator: Emulator, data: StrainDataset, setup: str, settings
         results.append(run_case(emulator, data, case, settings, noise_sd))
         write_text(path, json.dumps(asdict(results[-1])) + "\n")
     summary = summarise(results, setup, n, noise_sd, settings)
-    write_text(out / "coverage.json", json.dumps(summary, indent=2) + "\n")
+    write_text(out / "coverage.json", json.dumps(summary.to_json(), indent=2) + "\n")
     rank_histograms(np.array([r.rank for r in results]), out / "ranks.png",
                     f"{setup} (n = {n}), noise sd {noise_sd:g}: {len(results)} cases")
     return summary
 
 
-def summarise(results: list[CaseResult], setup: str, n: int, noise_sd: float, settings: SamplerSettings) -> dict:
+@dataclass(frozen=True)
+class ParameterCoverage:
+    """Coverage of one parameter's intervals over a study's cases."""
+
+    coverage_50: float  # share of cases whose central 50 % interval holds the truth
+    coverage_95: float
+    binomial_sd_50: float  # sqrt(p (1 - p) / n_cases)
+    binomial_sd_95: float
+    median_interval_share_95: float  # median 95 % interval width / prior range
+    meets_goal: bool  # coverage_95 in GOAL_95 and coverage_50 in GOAL_50
+
+
+@dataclass(frozen=True)
+class CoverageSummary:
+    """What ``coverage.json`` holds."""
+
+    setup: str
+    n: int
+    noise_sd: float
+    n_cases: int
+    divergences: int
+    sampler: SamplerSettings
+    parameters: dict[str, ParameterCoverage]
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def summarise(results: list[CaseResult], setup: str, n: int, noise_sd: float,
+              settings: SamplerSettings) -> CoverageSummary:
     """Coverage per parameter with its binomial sd, and whether it meets the goal."""
     n_cases = len(results)
-    out = {"setup": setup, "n": n, "noise_sd": noise_sd, "n_cases": n_cases, "sampler": asdict(settings),
-           "divergences": int(sum(r.divergences for r in results)), "parameters": {}}
+    parameters = {}
     for k, name in enumerate(LABELS):
         c50 = float(np.mean([r.covered_50[k] for r in results]))
         c95 = float(np.mean([r.covered_95[k] for r in results]))
-        out["parameters"][name] = {
-            "coverage_50": c50, "coverage_95": c95,
-            "binomial_sd_50": float(np.sqrt(c50 * (1 - c50) / n_cases)),
-            "binomial_sd_95": float(np.sqrt(c95 * (1 - c95) / n_cases)),
-            "median_interval_share_95": float(np.median([r.interval_share_95[k] for r in results])),
-            "meets_goal": bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]),
-        }
-    return out
+        parameters[name] = ParameterCoverage(
+            c50, c95, float(np.sqrt(c50 * (1 - c50) / n_cases)), float(np.sqrt(c95 * (1 - c95) / n_cases)),
+            float(np.median([r.interval_share_95[k] for r in results])),
+            bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]))
+    return CoverageSummary(setup, n, noise_sd, n_cases, int(sum(r.divergences for r in results)), settings,
+                           parameters)
 
 
 def rank_histograms(ranks: np.ndarray, path: Path | str, title: str, bins: int = 10) -> Path:

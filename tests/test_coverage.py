@@ -36,10 +36,10 @@ def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
     results = [CaseResult(rank=(1,) * 5, covered_50=(h,) * 5, covered_95=(True,) * 5,
                           interval_share_95=(0.5,) * 5, divergences=0) for h in hits]
     summary = summarise(results, "single", 3, 0.0, SamplerSettings())
-    mu = summary["parameters"]["mu"]
-    assert summary["n_cases"] == 50
-    assert mu["coverage_50"] == 0.9 and mu["binomial_sd_50"] == pytest.approx(np.sqrt(0.9 * 0.1 / 50))
-    assert mu["coverage_95"] == 1.0 and not mu["meets_goal"]  # 50 % intervals holding 90 %: too wide
+    mu = summary.parameters["mu"]
+    assert summary.n_cases == 50
+    assert mu.coverage_50 == 0.9 and mu.binomial_sd_50 == pytest.approx(np.sqrt(0.9 * 0.1 / 50))
+    assert mu.coverage_95 == 1.0 and not mu.meets_goal  # 50 % intervals holding 90 %: too wide
 
 
 @pytest.mark.slow
@@ -49,7 +49,7 @@ def test_a_study_ranks_the_truth_and_resumes_without_recomputing(small_emulator,
     first = int(np.flatnonzero(data.split == 1)[0])
     summary = coverage_study(emulator, data, "single", settings, tmp_path, materials=[first])
     n_cases = len(data.designs)
-    assert summary["n_cases"] == n_cases and (tmp_path / "ranks.png").stat().st_size > 10_000
+    assert summary.n_cases == n_cases and (tmp_path / "ranks.png").stat().st_size > 10_000
     cases = sorted((tmp_path / "cases").glob("*.json"))
     assert len(cases) == n_cases
     for path in cases:
@@ -61,4 +61,6 @@ def test_a_study_ranks_the_truth_and_resumes_without_recomputing(small_emulator,
                 assert 0.12 * RANK_DRAWS <= rank <= 0.88 * RANK_DRAWS  # thinning: +-4 sd
     monkeypatch.setattr(coverage, "run_case", lambda *a, **k: pytest.fail("a finished case was recomputed"))
     again = coverage_study(emulator, data, "single", settings, tmp_path, materials=[first])
-    assert again["parameters"] == summary["parameters"]
+    assert again.parameters == summary.parameters
+    assert json.loads((tmp_path / "coverage.json").read_text())["parameters"]["mu"]["coverage_95"] == \
+        summary.parameters["mu"].coverage_95
