@@ -20,8 +20,9 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     p.add_argument("--draws", type=int, default=1000, help="draws per chain after the warm-up")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--jobs", type=int, default=2, help="chains run in parallel (processes)")
-    p.add_argument("--gp-variance", choices=["exact", "mode"], default="exact",
-                   help="GP variance at every step (exact) or fixed at the mode (fast)")
+    p.add_argument("--gp-variance", choices=["exact", "mode"], default="mode",
+                   help="GP covariance fixed at the posterior mode (fast; coverage measured on it) or "
+                        "evaluated at every step (exact)")
     p.add_argument("--emulator-error", choices=["on", "off"], default="on",
                    help="carry the emulator's held-out error and PCA truncation in the likelihood (on), "
                         "or the GP variance only (off)")

@@ -28,7 +28,7 @@ class SamplerSettings:
     draws: int = 1000
     seed: int = 0
     n_jobs: int = 2
-    gp_variance: str = "exact"
+    gp_variance: str = "mode"
     progress: bool = True
     emulator_error: bool = True
 
