@@ -402,6 +402,13 @@ class SkinPosterior:
         return {"ratio_median": float(np.median(ratios)), "ratio_5": float(np.percentile(ratios, 5)),
                 "ratio_95": float(np.percentile(ratios, 95))}
 
+    def model_warnings(self) -> list[str]:
+        """What the summary must say about the model itself: an emulator without a held-out excess."""
+        if self.emulator_error and self.emulator.held_out_excess is None:
+            return ["this emulator has no held-out error model (fitted before skinid measured it): its error "
+                    "beyond the GP variance is not in these intervals; refit it with 'skinid surrogate fit'"]
+        return []
+
     def error_budget(self, values: np.ndarray) -> ErrorBudget:
         """Which term dominates the weights' variance at constrained ``values`` (dim,)."""
         values = torch.as_tensor(values, dtype=torch.float64)

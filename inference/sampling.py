@@ -370,6 +370,7 @@ class PosteriorSamples:
     gp_variance_spread: dict | None = None
     error_budget: ErrorBudget | None = None
     error_budget_at: np.ndarray | None = None  # (5,) the posterior medians it was evaluated at
+    model_warnings: tuple[str, ...] = ()  # SkinPosterior.model_warnings
 
     def posterior_dict(self) -> dict[str, np.ndarray]:
         """(chains, n_draws) draws per parameter name."""
@@ -428,7 +429,7 @@ class PosteriorSamples:
         }
 
     def warnings(self, table: dict) -> list[str]:
-        messages = []
+        messages = list(self.model_warnings)
         for n, e in table.items():
             if e["r_hat"] > RHAT_LIMIT:
                 messages.append(f"{n}: R-hat {e['r_hat']:.3f} > {RHAT_LIMIT} (chains disagree; sample longer)")
@@ -513,6 +514,7 @@ def sample_posterior(
         samples.gp_variance_spread = posterior.gp_variance_spread(samples.draws[..., :5].reshape(-1, 5))
     medians = np.median(samples.draws.reshape(-1, posterior.dim), axis=0)
     samples.error_budget, samples.error_budget_at = posterior.error_budget(medians), medians[:5]
+    samples.model_warnings = tuple(posterior.model_warnings())
     return samples
 
 

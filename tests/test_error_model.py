@@ -155,6 +155,19 @@ def test_likelihood_is_the_multivariate_normal_of_the_summed_covariances(emulato
     assert float(post.log_likelihood(params, torch.zeros(0))) == pytest.approx(expected, rel=1e-9)
 
 
+def test_an_emulator_without_a_held_out_excess_is_named_in_the_warnings(emulator_and_observation):
+    from dataclasses import replace
+
+    from inference.model import SkinPosterior
+
+    emulator, observed = emulator_and_observation
+    assert SkinPosterior(emulator, observed).model_warnings() == []
+    old = replace(emulator, provenance=replace(emulator.provenance, held_out_excess=None))
+    (message,) = SkinPosterior(old, observed).model_warnings()
+    assert "no held-out error model" in message and "skinid surrogate fit" in message
+    assert SkinPosterior(old, observed, emulator_error=False).model_warnings() == []
+
+
 @pytest.fixture
 def emulator_and_observation():
     """A two-GP emulator with a held-out excess, and two masked observations with stated sd."""
