@@ -195,6 +195,7 @@ def noise_study(
         study = test_set_study(emulator, case_data, [design], [-1], settings, folder / "posteriors",
                                materials, label=f"{name}: design {design}")
         results[name] = {
+            "data": str(path),
             "noise": None if noise is None else {"length_mm": noise[0], "level": noise[1]},
             "explained_variance": {c: np.cumsum(p.explained_variance_ratio_)[:12].tolist()
                                    for c, p in emulator.pcas.items()},

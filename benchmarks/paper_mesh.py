@@ -1,0 +1,171 @@
+"""The paper's identifiability and noise studies on the paper mesh, side by side with the `study` mesh.
+
+    # 1. paper-mesh data: 120 materials, the "mixed" design (0.05, -0.05), 10 frames (~35 min, 2 cores)
+    mpirun -n 2 skinid sweep --config benchmarks/configs/paper_mixed.toml --out out/paper_mixed.h5
+    # 2. the cells hypothesis: the same data on 256 of its 3,844 skin cells (every 4th row and column)
+    python benchmarks/paper_mesh.py subset --data out/paper_mixed.h5 --every 4 --out out/paper_mixed_256.h5
+    # 3. the noise studies (clean = identifiability), as the `study` run in benchmarks/results/noise_study
+    skinid study noise --data out/paper_mixed.h5 --designs 0 --gp-fraction 0.7 --restarts 0 \
+        --warmup 300 --draws 300 --out out/paper_noise
+    skinid study noise --data out/paper_mixed_256.h5 --designs 0 --gp-fraction 0.7 --restarts 0 \
+        --warmup 300 --draws 300 --lengths 0.1 --levels 0.01 0.1 --out out/paper_noise_256
+    # 4. the side-by-side table (benchmarks/results/paper_mesh/)
+    python benchmarks/paper_mesh.py table --run "paper mesh=out/paper_noise" \
+        --run "paper mesh, 256 cells=out/paper_noise_256" \
+        --run "study mesh=benchmarks/results/noise_study"
+
+The table gives, per noise case and parameter, the median width of the 95 % interval as a share
+of the prior range and the coverage of the truth over the test materials, with the sha256 of the
+data each run came from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "paper_mesh"
+PARAMS = ("mu", "k1", "k2", "kappa", "theta")
+SYMBOLS = {"mu": "μ", "k1": "k₁", "k2": "k₂", "kappa": "κ", "theta": "θ"}
+
+
+def grid_subset(xy: np.ndarray, every: int) -> np.ndarray:
+    """Indices of the cells on every ``every``-th row and column of a structured in-plane grid.
+
+    Args:
+        xy: (n_cells, 2) cell centres [mm] of a tensor-product (graded) grid.
+        every: keep one row (column) in ``every``, spread symmetrically over the grid.
+    Returns:
+        (n_kept,) sorted cell indices.
+    """
+    columns = [np.unique(np.round(xy[:, k], 6)) for k in range(2)]
+    if len(columns[0]) * len(columns[1]) != len(xy):
+        raise ValueError(f"the {len(xy)} cells are not a tensor-product grid "
+                         f"({len(columns[0])} x {len(columns[1])} distinct centres)")
+    kept = [c[np.unique(np.round(np.linspace(0, len(c) - 1, -(-len(c) // every))).astype(int))]
+            for c in columns]
+    on_x = np.isin(np.round(xy[:, 0], 6), kept[0])
+    on_y = np.isin(np.round(xy[:, 1], 6), kept[1])
+    return np.flatnonzero(on_x & on_y)
+
+
+def write_subset(data_path: Path, cells: np.ndarray, out: Path) -> Path:
+    """A copy of a dataset holding only ``cells`` (same materials, designs, frames, status)."""
+    from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
+    from skinfem.outputs import write_atomically
+
+    data = StrainDataset.open(data_path)
+    n_mat, n_des, _, _ = data.shape
+
+    def write(tmp: Path) -> None:
+        create_dataset(tmp, data.config, data.params, data.designs, data.t, data.xy[cells],
+                       data.volume[cells], data.split, f"{data.mesh_sha256}:cells{len(cells)}",
+                       bounds=np.stack([data.lower, data.upper], 1), versions=data.versions)
+        for i in range(n_mat):
+            block = data.strain(i)[:, :, cells]
+            for j in range(n_des):
+                status = int(data.status[i, j])
+                if status == STATUS_OK:
+                    write_simulation(tmp, i, j, block[j], status, "", int(data.newton_iterations[i, j]),
+                                     float(data.seconds[i, j]))
+                elif status != 0:
+                    write_simulation(tmp, i, j, None, status, data.messages[i, j])
+
+    return write_atomically(out, write)
+
+
+def sha256(path: Path) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class StudyRun:
+    """One noise study's results (``noise_study.json``) under a label."""
+
+    label: str
+    folder: Path
+    results: dict
+
+    @classmethod
+    def read(cls, spec: str) -> StudyRun:
+        label, _, folder = spec.partition("=")
+        path = Path(folder) / "noise_study.json"
+        if not label or not path.is_file():
+            raise SystemExit(f"--run must be LABEL=FOLDER with FOLDER/noise_study.json, got '{spec}'")
+        return cls(label, Path(folder), json.loads(path.read_text()))
+
+    def cell(self, case: str, name: str) -> str:
+        """'width / coverage' of one parameter in one case, or '—' when the run lacks the case."""
+        if case not in self.results:
+            return "—"
+        study = self.results[case]["study"]
+        return f"{study['median_interval_share_of_prior'][name]:.2f} / {study['coverage_95'][name]:.0%}"
+
+    def identified(self, case: str) -> str:
+        if case not in self.results:
+            return "—"
+        names = [SYMBOLS[n] for n in PARAMS if self.results[case]["study"]["identified"][n]]
+        return ", ".join(names) or "none"
+
+
+def side_by_side(runs: list[StudyRun]) -> str:
+    """Markdown table: per case, the identified parameters and each run's width / coverage."""
+    cases = list(dict.fromkeys(c for run in runs for c in run.results))
+    lines = ["| case | run | " + " | ".join(SYMBOLS[n] for n in PARAMS) + " | identified |",
+             "|---|---|" + "---|" * (len(PARAMS) + 1)]
+    for case in cases:
+        for run in runs:
+            if case in run.results:
+                lines.append(f"| {case} | {run.label} | " + " | ".join(run.cell(case, n) for n in PARAMS)
+                             + f" | {run.identified(case)} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("subset", help="the dataset on every n-th row and column of its cells")
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--every", type=int, default=4)
+    p.add_argument("--out", type=Path, required=True)
+    p = sub.add_parser("table", help="side-by-side table of noise studies")
+    p.add_argument("--run", action="append", required=True, help="LABEL=FOLDER (repeat)")
+    p.add_argument("--results", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    if args.command == "subset":
+        from skinfem.io import StrainDataset
+
+        if args.out.exists():
+            raise SystemExit(f"'{args.out}' exists: remove it first")
+        cells = grid_subset(StrainDataset.open(args.data).xy, args.every)
+        write_subset(args.data, cells, args.out)
+        print(f"wrote {args.out}: {len(cells)} cells")
+        return
+    runs = [StudyRun.read(spec) for spec in args.run]
+    args.results.mkdir(parents=True, exist_ok=True)
+    sources = {}
+    for run in runs:
+        data = next(iter(run.results.values())).get("data")
+        sources[run.label] = {"folder": str(run.folder), "data": data,
+                              "data_sha256": sha256(Path(data)) if data and Path(data).is_file() else None}
+    table = side_by_side(runs)
+    (args.results / "side_by_side.md").write_text(
+        "Median width of the 95 % interval as a share of the prior range / coverage of the truth over "
+        "the test materials (last frame of the mixed design).\n\n" + table + "\n")
+    (args.results / "sources.json").write_text(json.dumps(sources, indent=2) + "\n")
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
