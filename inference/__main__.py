@@ -90,7 +90,8 @@ def _infer_parser(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
     parser.add_argument("--material", type=int, help="with --data: material index")
     parser.add_argument("--designs", help="with --data: design indices, e.g. '2' or '0,2,4' (default: all)")
-    parser.add_argument("--frames", help="with --data: frame indices, e.g. '-1' or '-3,-2,-1' (default: -1)")
+    parser.add_argument("--frames", help="with --data: frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
+                                         "(write the '=': the value starts with '-') (default: -1)")
     parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
                         help="unknown noise per component, or the measurement's sd columns")
     add_output(parser, "output directory")
@@ -168,7 +169,8 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
     p.add_argument("--designs", required=True, help="design indices, e.g. '2' or '7,6,13'")
-    p.add_argument("--frames", default="-1", help="frame indices, e.g. '-1' or '-3,-2,-1'")
+    p.add_argument("--frames", default="-1", help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
+                                                  "(write the '=': the value starts with '-')")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)

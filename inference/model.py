@@ -182,6 +182,10 @@ class ErrorBudget:
                   f"PCA truncation {self.truncation:.0%} of the weights' variance")
         if self.emulator <= self.noise:
             return f"the measurement noise limits these intervals ({shares})"
+        if self.truncation >= self.gp + self.held_out_excess:
+            return (f"the emulator's PCA truncation, not your measurement, limits these intervals ({shares}): the "
+                    "field of view leaks the discarded components into the kept ones; refit the emulator with more "
+                    "components ('skinid surrogate fit --variance 0.999')")
         near = ", ".join(f"{n} = {v:.3g}" for n, v in zip(PARAM_NAMES, params))
         return (f"the emulator, not your measurement, limits these intervals ({shares}): refine the dataset "
                 f"near {near}")

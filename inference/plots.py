@@ -30,41 +30,47 @@ def pyplot():
 def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
     """Posterior pairs of the five skin parameters over the prior box (the paper's Fig. 7).
 
-    Diagonal: posterior histogram against the uniform prior density (grey); off-diagonal:
-    2-D histogram of the draws. The true value, when known, is drawn in red.
+    Drawn by ArviZ's pair plot (:func:`arviz.plot_pair`): diagonal, the posterior's KDE against the
+    uniform prior density (grey); below it, the draws with their 25/50/90 % KDE contours. Axes span
+    the prior box. The true value, when known, is drawn in red.
     """
-    plt = pyplot()
+    pyplot()  # the Agg backend, selected before ArviZ imports pyplot
+    import arviz as az
+    from arviz_base.labels import MapLabeller
+
     names = list(LABELS)
-    draws = samples.draws[..., :5].reshape(-1, 5)
     bounds = samples.bounds
     truth = samples.truth
-    fig, axes = plt.subplots(5, 5, figsize=(10, 10))
+    dt = az.from_dict({"posterior": {n: samples.draws[..., k] for k, n in enumerate(names)}})
+    matrix = az.plot_pair(
+        dt, marginal=True, marginal_kind="kde", triangle="lower", backend="matplotlib",
+        labeller=MapLabeller(var_name_map=LABELS),
+        visuals={"scatter": {"alpha": 0.1, "color": "C0"}, "contour": {"color": "k"}},
+        figure_kwargs={"figsize": (10, 10)},
+    )
+    fig = matrix.viz["figure"].item()
+    axes = matrix.viz["plot"].values  # (row, col): y variable, x variable
     for i in range(5):
-        for j in range(5):
+        for j in range(i + 1):
             ax = axes[i, j]
-            if j > i:
-                ax.axis("off")
-                continue
+            ax.set_xlim(bounds[j])
             if i == j:
-                ax.hist(draws[:, i], bins=40, range=bounds[i], density=True, color="C0", alpha=0.8)
-                ax.axhline(1 / np.ptp(bounds[i]), color="0.5", lw=1.5, label="prior")
+                prior = 1 / np.ptp(bounds[i])
+                ax.axhline(prior, color="0.5", lw=1.5, label="prior")
+                ax.set_ylim(0, max(ax.get_ylim()[1], 1.2 * prior))
+                if truth is not None:
+                    ax.axvline(truth[i], color="r", lw=1.5, label="true")
                 ax.set_yticks([])
+                ax.set_ylabel("")
             else:
-                ax.hist2d(draws[:, j], draws[:, i], bins=40, range=[bounds[j], bounds[i]], cmap="Blues")
+                ax.set_ylim(bounds[i])
                 if truth is not None:
                     ax.plot(truth[j], truth[i], "r+", ms=12, mew=2)
-            if truth is not None and i == j:
-                ax.axvline(truth[i], color="r", lw=1.5, label="true")
-            ax.set_xlim(bounds[j])
-            if i == 4:
-                ax.set_xlabel(LABELS[names[j]], fontsize=11)
-            else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(LABELS[names[i]], fontsize=11)
-            elif i != j:
-                ax.set_yticklabels([])
+                if j > 0:
+                    ax.tick_params(labelleft=False)
             ax.tick_params(labelsize=8)
+            ax.xaxis.label.set_fontsize(11)
+            ax.yaxis.label.set_fontsize(11)
     axes[0, 0].legend(fontsize=8, loc="upper right")
     fig.suptitle(title or "posterior (blue) against the uniform prior (grey); truth in red", fontsize=12)
     return save_figure(fig, path)

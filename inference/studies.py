@@ -212,24 +212,44 @@ def noise_study(
 
 
 def explained_variance_plot(results: dict, path: Path) -> Path:
-    """Cumulative explained variance per case and component (the paper's Fig. 4)."""
+    """Cumulative explained variance per case and component (the paper's Fig. 4).
+
+    Cases that coincide stay visible: line style and marker by noise length scale ℓ, colour by
+    noise level (the clean case black), each case shifted a little along M; the legend sits
+    outside the panels.
+    """
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     comps = list(next(iter(results.values()))["explained_variance"])
-    fig, axes = plt.subplots(1, len(comps), figsize=(5.5 * len(comps), 4), squeeze=False)
+    noise = {name: res.get("noise") for name, res in results.items()}
+    lengths = sorted({v["length_mm"] for v in noise.values() if v})
+    levels = sorted({v["level"] for v in noise.values() if v})
+    styles = [("-", "o"), ("--", "s"), (":", "^"), ("-.", "D"), ((0, (5, 1, 1, 1, 1, 1)), "v")]
+    colours = plt.get_cmap("plasma")(np.linspace(0.05, 0.75, max(len(levels), 1)))
+    offsets = np.linspace(-0.3, 0.3, len(results)) if len(results) > 1 else np.zeros(1)
+    lowest = min(min(ev) for res in results.values() for ev in res["explained_variance"].values())
+    fig, axes = plt.subplots(1, len(comps), figsize=(4.6 * len(comps) + 2.4, 4.2), squeeze=False)
     for ax, c in zip(axes[0], comps):
-        for name, res in results.items():
-            ev = res["explained_variance"][c]
-            style = "k-" if name == "clean" else "-"
-            ax.plot(np.arange(1, len(ev) + 1), ev, style, marker="o", ms=3, label=name)
-        ax.axhline(0.99, color="0.5", ls="--", lw=0.8)
+        for (name, res), dx in zip(results.items(), offsets):
+            ev = np.asarray(res["explained_variance"][c])
+            case = noise[name]
+            if case is None:
+                style = {"color": "k", "ls": "-", "marker": "o", "lw": 2.0, "label": name}
+            else:
+                ls, marker = styles[lengths.index(case["length_mm"]) % len(styles)]
+                style = {"color": colours[levels.index(case["level"])], "ls": ls, "marker": marker, "lw": 1.4,
+                         "label": f"{name}: ℓ = {case['length_mm']:g} mm, level {case['level'] * 100:g} %"}
+            ax.plot(np.arange(1, len(ev) + 1) + dx, ev, ms=4, **style)
+        ax.axhline(0.99, color="0.5", ls="--", lw=0.8, label="99 %")
         ax.set_xlabel("number of principal components M")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel(f"cumulative explained variance of E_{c} [-]")
-        ax.set_ylim(0, 1.02)
+        ax.set_ylim(max(0.0, lowest - 0.03), 1.005)
+        ax.set_title(f"E_{c}", fontsize=10)
         ax.grid(alpha=0.3)
-    axes[0, -1].legend(fontsize=7, ncol=2)
+    axes[0, -1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0,
+                       title="case (noise length ℓ, level)", title_fontsize=8)
     return save_figure(fig, path, dpi=120)
 
 
@@ -253,10 +273,10 @@ def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray
             w = emulator.predict_weights(torch.as_tensor(model_inputs(params, alpha, 1.0)), return_var=False).numpy()
         for j in range(2):
             ax = axes[r, j]
-            im = ax.contourf(mu * 1e3, k1 * 1e3, w[:, j].reshape(n, n), levels=20, cmap="viridis")
+            im = ax.contourf(mu, k1, w[:, j].reshape(n, n), levels=20, cmap="viridis")
             fig.colorbar(im, ax=ax, label=f"E_xx PC{j + 1} weight [-]")
-            ax.set_xlabel("μ [kPa]")
-            ax.set_ylabel("k₁ [kPa]")
+            ax.set_xlabel(LABELS["mu"])
+            ax.set_ylabel(LABELS["k1"])
             ax.set_title(f"{name}: E_xx PC{j + 1}", fontsize=10)
     return save_figure(fig, path)
 

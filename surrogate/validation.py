@@ -105,16 +105,19 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
 
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    for c, pca in emulator.pcas.items():
+    styles = [("C0", "-", "o"), ("C1", "--", "s"), ("C2", ":", "^"), ("C3", "-.", "D")]
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    offsets = np.linspace(-0.15, 0.15, len(emulator.pcas)) if len(emulator.pcas) > 1 else np.zeros(1)
+    for (c, pca), (colour, ls, marker), dx in zip(emulator.pcas.items(), styles * len(emulator.pcas), offsets):
         ratio = np.cumsum(pca.explained_variance_ratio_)[:n_max]
-        ax.plot(np.arange(1, len(ratio) + 1), ratio, "o-", ms=3, label=f"E_{c} (M = {pca.n_components_})")
+        ax.plot(np.arange(1, len(ratio) + 1) + dx, ratio, color=colour, ls=ls, marker=marker, ms=4, lw=1.4,
+                label=f"E_{c} (M = {pca.n_components_})")
     ax.axhline(0.99, color="k", lw=0.8, ls="--", label="99 %")
     ax.set_xlabel("number of principal components M")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("cumulative explained variance [-]")
-    ax.set_ylim(top=1.0)
-    ax.legend(fontsize=8)
+    ax.set_ylim(top=1.005)
+    ax.legend(fontsize=8, loc="lower right", title="strain component", title_fontsize=8)
     ax.grid(alpha=0.3)
     return save_figure(fig, path, dpi=130)
 

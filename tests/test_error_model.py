@@ -198,3 +198,16 @@ def emulator_and_observation():
                                 sd=np.array([0.05, 0.05, 0.05]), truth=None, source=f"o{k}")
                     for k, t in enumerate((0.5, 1.0))]
     return emulator, ObservedWeights.project(emulator, observations)
+
+
+def test_the_budget_statement_names_the_term_that_limits_the_intervals():
+    """Noise ahead: the measurement; GP + excess ahead: refine the dataset near the point;
+    truncation ahead of the rest of the emulator: keep more components."""
+    from inference.model import ErrorBudget
+
+    params = np.array([1e-3, 0.015, 10.0, 0.28, 30.0])
+    assert "measurement noise limits" in ErrorBudget(0.6, 0.2, 0.1, 0.1).statement(params)
+    near = ErrorBudget(0.2, 0.4, 0.3, 0.1).statement(params)
+    assert "refine the dataset near mu = 0.001" in near and "--variance" not in near
+    leak = ErrorBudget(0.2, 0.1, 0.1, 0.6).statement(params)
+    assert "PCA truncation" in leak and "--variance 0.999" in leak
