@@ -39,6 +39,52 @@ def _ints(text: str | None, option: str) -> list[int] | None:
         raise ValueError(f"{option} must be integers such as '2' or '0,2,4', got '{text}'") from None
 
 
+ALPHA_TOLERANCE = 1e-3  # |alpha given - alpha of a design| that still names it [-]
+
+
+def design_indices(text: str | None, designs: np.ndarray, path: Path, option: str = "--designs") -> list[int] | None:
+    """Designs of a dataset named by index (``'7'``, ``'7,6,13'``) or by eigen-strain pairs
+    (``'0.05,-0.05'`` or ``'0.05,-0.05,-0.05,0.05'``; a list holding a non-integer is read as
+    (alpha11, alpha22) pairs [-], each matched to the dataset's design within ``ALPHA_TOLERANCE``).
+
+    Args:
+        designs: (n_des, 2) the dataset's eigen-strains.
+    Returns:
+        Design indices (None if ``text`` is None); indices given as such are not range-checked here.
+    """
+    if text is None:
+        return None
+    tokens = text.replace(",", " ").split()
+    try:
+        return [int(v) for v in tokens]
+    except ValueError:
+        pass
+    try:
+        values = np.array([float(v) for v in tokens])
+    except ValueError:
+        raise ValueError(f"{option} takes design indices ('2', '0,2,4') or eigen-strain pairs "
+                         f"('0.05,-0.05'), got '{text}'") from None
+    if len(values) == 0 or len(values) % 2:
+        raise ValueError(f"{option} {text}: eigen-strains come in pairs alpha11,alpha22 (e.g. 0.05,-0.05)")
+    indices = []
+    for pair in values.reshape(-1, 2):
+        distance = np.abs(designs - pair).max(1)
+        j = int(np.argmin(distance))
+        if distance[j] > ALPHA_TOLERANCE:
+            known = ", ".join(f"{a:g},{b:g}" for a, b in designs)
+            raise ValueError(f"{option}: {path} has no design alpha = {pair[0]:g},{pair[1]:g} (its designs: {known})")
+        indices.append(j)
+    return indices
+
+
+def _one_design(text: str, designs: np.ndarray, path: Path) -> int:
+    """The single design of ``--designs`` (index or one eigen-strain pair)."""
+    indices = design_indices(text, designs, path)
+    if len(indices) != 1:
+        raise ValueError(f"--designs names one design here (an index or alpha11,alpha22), got '{text}'")
+    return indices[0]
+
+
 def _check_indices(option: str, values: list[int] | None, size: int, path: Path, negative: bool = True) -> None:
     """Refuse indices outside a dataset's ``size`` entries (negative ones count from the end if allowed)."""
     for v in values or []:
@@ -89,7 +135,8 @@ def _infer_parser(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--data", type=Path, help="dataset (.h5): observe one of its materials")
     src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
     parser.add_argument("--material", type=int, help="with --data: material index")
-    parser.add_argument("--designs", help="with --data: design indices, e.g. '2' or '0,2,4' (default: all)")
+    parser.add_argument("--designs", help="with --data: design indices ('2', '0,2,4') or eigen-strains "
+                                          "('--designs=0.05,-0.05') (default: all)")
     parser.add_argument("--frames", help="with --data: frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
                                          "(write the '=': the value starts with '-') (default: -1)")
     parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
@@ -168,7 +215,8 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
-    p.add_argument("--designs", required=True, help="design indices, e.g. '2' or '7,6,13'")
+    p.add_argument("--designs", required=True, help="design indices ('2', '7,6,13') or eigen-strain pairs "
+                                                    "('--designs=0.05,-0.05,-0.05,0.05')")
     p.add_argument("--frames", default="-1", help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
                                                   "(write the '=': the value starts with '-')")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
@@ -177,9 +225,10 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("setups", help="single vs multi-frame vs multi-membrane (the paper's Fig. 8)")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
-    add_renamed_option(p, "--designs", old="--design", type=int, required=True, help="the single design index")
+    add_renamed_option(p, "--designs", old="--design", required=True,
+                       help="the single design: index ('7') or eigen-strains ('--designs=0.05,-0.05')")
     p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
-    p.add_argument("--others", help="the multi-membrane setup's other designs, e.g. '0,13' "
+    p.add_argument("--others", help="the multi-membrane setup's other designs, e.g. '0,13' or '-0.05,0.05,0.05,0.05' "
                                     "(default: the n - 1 designs farthest apart in alpha)")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
@@ -200,8 +249,8 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     _add_sampler(p)
     p = sub.add_parser("noise", help="the paper's 9 noise cases: PCA, GP R², test-set posteriors")
     p.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
-    add_renamed_option(p, "--designs", old="--design", type=int, required=True,
-                       help="design index observed (last frame)")
+    add_renamed_option(p, "--designs", old="--design", required=True,
+                       help="the design observed (last frame): index ('7') or eigen-strains ('--designs=0.05,-0.05')")
     p.add_argument("--lengths", type=float, nargs="+", default=[0.1, 1.0, 5.0], help="noise correlation lengths [mm]")
     p.add_argument("--levels", type=float, nargs="+", default=[0.01, 0.05, 0.10],
                    help="noise amplitudes as fractions of the max |strain| of the training data")
@@ -281,7 +330,8 @@ def cmd_infer(args) -> None:
             raise ValueError("--data needs --material")
         data = StrainDataset.open(args.data)
         check_same_mesh(data, emulator)
-        obs = from_dataset(data, args.material, _ints(args.designs, "--designs"), _ints(args.frames, "--frames"))
+        designs = design_indices(args.designs, data.designs, args.data)
+        obs = from_dataset(data, args.material, designs, _ints(args.frames, "--frames"))
     else:
         membrane_half = config_from_toml(emulator.provenance.dataset_config).mesh.membrane_size / 2
         measurements = [read_measurement(p, emulator.provenance.block_half_length) for p in args.measurement]
@@ -305,8 +355,11 @@ def cmd_study(args) -> None:
         check_same_mesh(data, emulator)
     n_mat, n_des, n_frames, _ = data.shape
     _check_indices("--materials", _ints(args.materials, "--materials"), n_mat, args.data, negative=False)
-    if args.study == "test-set":
-        _check_indices("--designs", _ints(args.designs, "--designs"), n_des, args.data)
+    if args.study in ("setups", "noise"):
+        args.designs = _one_design(args.designs, data.designs, args.data)
+    elif args.study == "test-set":
+        args.designs = design_indices(args.designs, data.designs, args.data)
+        _check_indices("--designs", args.designs, n_des, args.data)
         _check_indices("--frames", _ints(args.frames, "--frames"), n_frames, args.data)
     if args.study == "noise":
         _check_noise_study(args, n_des)
@@ -371,7 +424,7 @@ def _noise_study(args, data) -> None:
 def _test_set(args, emulator, data) -> None:
     from inference.studies import test_set_study
 
-    res = test_set_study(emulator, data, _ints(args.designs, "--designs"), _ints(args.frames, "--frames"),
+    res = test_set_study(emulator, data, args.designs, _ints(args.frames, "--frames"),
                          settings_of(args), args.out, _ints(args.materials, "--materials"))
     print(json.dumps(res, indent=2))
     print(f"wrote {args.out}/study.json and accuracy.png")
@@ -381,7 +434,8 @@ def _setups_designs(args, data) -> list[int]:
     """The single design, then the multi-membrane setup's others, checked before any study runs."""
     from inference.studies import spread_designs
 
-    others = _ints(args.others, "--others") if args.others else spread_designs(data.designs, args.designs, args.n)[1:]
+    others = (design_indices(args.others, data.designs, args.data, "--others") if args.others
+              else spread_designs(data.designs, args.designs, args.n)[1:])
     bad = [j for j in [args.designs, *others] if not 0 <= j < len(data.designs)]
     if bad:
         raise ValueError(f"design {bad[0]} is not in [0, {len(data.designs)}) of {args.data}")

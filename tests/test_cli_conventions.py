@@ -160,12 +160,33 @@ def test_the_old_design_spelling_is_a_hidden_deprecated_alias(capsys):
 
     parser = inference_cli.build_parser("skinid study")
     args = parser.parse_args(["noise", "--data", "d.h5", "--design", "7", "--out", "o"])
-    assert args.designs == 7
+    assert args.designs == "7"
     assert "--design is deprecated; use --designs" in capsys.readouterr().err
     assert not re.search(r"--design\b(?!s)", PARSERS["study noise"].format_help())
     with pytest.raises(SystemExit):  # one of the two is still required
         parser.parse_args(["noise", "--data", "d.h5", "--out", "o"])
     assert "--designs is required" in capsys.readouterr().err
+
+
+def test_designs_are_named_by_index_or_by_their_eigen_strains():
+    from inference.__main__ import design_indices
+
+    designs = np.array([[-0.05, -0.05], [-0.05, 0.033333333333], [0.05, -0.05], [0.05, 0.05]])
+    path = Path("d.h5")
+    assert design_indices("2", designs, path) == [2]
+    assert design_indices("3,0", designs, path) == [3, 0]
+    assert design_indices("0.05,-0.05", designs, path) == [2]
+    assert design_indices("0.05,0.05 -0.05,0.0333", designs, path) == [3, 1]  # within 1e-3
+    assert design_indices(None, designs, path) is None
+    with pytest.raises(ValueError, match=r"has no design alpha = 0.05,0 \(its designs: -0.05,-0.05, "):
+        design_indices("0.05,0", designs, path)
+    with pytest.raises(ValueError, match="come in pairs"):
+        design_indices("0.05,-0.05,0.05", designs, path)
+    import inference.__main__ as inference_cli
+
+    parser = inference_cli.build_parser("skinid study")
+    args = parser.parse_args(["noise", "--data", "d.h5", "--designs=-0.05,0.05", "--out", "o"])
+    assert args.designs == "-0.05,0.05"
 
 
 # ---------------------------------------------------------------- --force
