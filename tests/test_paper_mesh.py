@@ -1,0 +1,80 @@
+"""benchmarks/paper_mesh.py: the cell subset of the cells hypothesis and the side-by-side table (no FE)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def paper_mesh():
+    spec = importlib.util.spec_from_file_location("paper_mesh", ROOT / "benchmarks" / "paper_mesh.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["paper_mesh"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def graded_grid(n: int = 62) -> np.ndarray:
+    """(n * n, 2) centres of a symmetric graded tensor grid [mm] (finest at the centre)."""
+    edges = np.sinh(np.linspace(-3, 3, n + 1)) * 2.0
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    return np.stack(np.meshgrid(centres, centres), -1).reshape(-1, 2)
+
+
+def test_grid_subset_keeps_every_fourth_row_and_column_symmetrically(paper_mesh):
+    xy = graded_grid()
+    cells = paper_mesh.grid_subset(xy, 4)
+    assert len(cells) == 16 * 16  # the study mesh's skin cell count from the paper mesh's 62 x 62
+    kept_x = np.unique(xy[cells, 0])
+    np.testing.assert_allclose(kept_x, -kept_x[::-1], atol=1e-9)  # symmetric about the membrane centre
+    assert kept_x[0] == xy[:, 0].min() and kept_x[-1] == xy[:, 0].max()
+    with pytest.raises(ValueError, match="not a tensor-product grid"):
+        paper_mesh.grid_subset(np.random.default_rng(0).uniform(size=(50, 2)), 4)
+
+
+def test_a_subset_dataset_holds_the_same_values_on_the_kept_cells(paper_mesh, tmp_path):
+    from skinfem.config import load_config
+    from skinfem.io import STATUS_FAILED, STATUS_OK, StrainDataset, create_dataset, write_simulation
+
+    config, xy = load_config("small"), graded_grid(8)
+    rng = np.random.default_rng(1)
+    params = rng.uniform(size=(3, 5))
+    path = tmp_path / "full.h5"
+    create_dataset(path, config, params, np.array([[0.05, -0.05]]), np.array([0.5, 1.0]), xy, np.ones(len(xy)),
+                   np.array([0, 0, 1]), "sha", np.stack([np.zeros(5), np.ones(5)], 1))
+    fields = rng.normal(size=(2, 2, len(xy), 3))
+    write_simulation(path, 0, 0, fields[0], STATUS_OK)
+    write_simulation(path, 1, 0, None, STATUS_FAILED, "diverged")
+    write_simulation(path, 2, 0, fields[1], STATUS_OK)
+    cells = paper_mesh.grid_subset(xy, 2)
+    sub = StrainDataset.open(paper_mesh.write_subset(path, cells, tmp_path / "sub.h5"))
+    assert sub.shape == (3, 1, 2, len(cells)) and sub.mesh_sha256 == f"sha:cells{len(cells)}"
+    np.testing.assert_array_equal(sub.status, [[STATUS_OK], [STATUS_FAILED], [STATUS_OK]])
+    np.testing.assert_allclose(sub.strain(2, 0), fields[1][:, cells].astype(np.float32))
+    np.testing.assert_array_equal(sub.xy, xy[cells])
+
+
+def test_the_side_by_side_table_has_a_row_per_case_and_run(paper_mesh, tmp_path):
+    def study(width: float, covered: float, identified: bool) -> dict:
+        names = paper_mesh.PARAMS
+        return {"study": {"median_interval_share_of_prior": dict.fromkeys(names, width),
+                          "coverage_95": dict.fromkeys(names, covered),
+                          "identified": dict.fromkeys(names, identified)}}
+
+    for label, results in (("a", {"clean": study(0.1, 1.0, True), "s1": study(0.9, 0.95, False)}),
+                           ("b", {"clean": study(0.2, 0.9, True)})):
+        (tmp_path / label).mkdir()
+        (tmp_path / label / "noise_study.json").write_text(json.dumps(results))
+    runs = [paper_mesh.StudyRun.read(f"{k}={tmp_path / k}") for k in "ab"]
+    lines = paper_mesh.side_by_side(runs).splitlines()
+    assert lines[2] == "| clean | a | " + "0.10 / 100% | " * 5 + "μ, k₁, k₂, κ, θ |"
+    assert lines[3].startswith("| clean | b | 0.20 / 90%") and lines[4].endswith("| none |")
+    assert len(lines) == 5  # header, rule, clean a, clean b, s1 a (b has no s1)
