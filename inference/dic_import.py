@@ -374,7 +374,8 @@ def _named_table(path: Path, fmt: str, names: list[str], values: np.ndarray, lin
 
 
 def _sigma_mask(table: DicTable, names: list[str], values: np.ndarray) -> DicTable:
-    """VIC: a point with sigma < 0 (written -1, every other field 0) was not correlated."""
+    """VIC: a point with sigma < 0 (written -1, every other field 0) was not correlated (a table
+    read with --format table follows the same rule when it has a ``sigma`` column)."""
     hits = [i for i, n in enumerate(names) if parse_name(n)[0] == "sigma"]
     if hits:
         table.valid &= ~(values[:, hits[0]] < 0)
@@ -530,7 +531,8 @@ def read_table(path: Path, options: TableOptions) -> DicTable:
         _fail(path, None, f"the decimal mark and the delimiter are both '{decimal}'")
     names = _cells(lines[header], delimiter)
     values = _numbers(path, rows, delimiter, len(names), decimal, MISSING + tuple(options.missing))
-    table = _named_table(path, "table", names, values, np.array([r[0] for r in rows]), options.columns)
+    table = _sigma_mask(_named_table(path, "table", names, values, np.array([r[0] for r in rows]), options.columns),
+                        names, values)
     table.notes = notes
     if options.units is not None:
         unit = _length_unit(path, options.units)

@@ -297,6 +297,10 @@ def test_missing_points_are_masked_whatever_the_format():
         assert field.n_missing == len(fx.missing) > 0, name
     # DICe subset 24 failed with STATUS_FLAG 12 only (SIGMA > 0): masked too
     assert 24 in FIXTURES["DICe_solution_12.txt"].missing
+    # a VIC export read as a generic table keeps VIC's rule (sigma < 0: missing), not zero-strain points
+    fx = FIXTURES["vic3d_classic.csv"]
+    field = load_dic(DATA / fx.name, settings_for(fx, format="table", strain="green", table=TableOptions(units="mm")))
+    assert field.n_missing == len(fx.missing)
 
 
 def test_localised_missing_markers(tmp_path):
