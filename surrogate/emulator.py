@@ -384,6 +384,17 @@ def gp_rows(n_rows: int, gp_fraction: float, max_gp_rows: int | None, seed: int)
     return np.sort(np.random.default_rng(seed).choice(n_rows, n_gp, replace=False))
 
 
+def _cross_validated_excess(gps: list, rows: TrainingRows, weights: np.ndarray, box: tuple[np.ndarray, np.ndarray],
+                            subset: np.ndarray, seed: int, n_jobs: int):
+    """The held-out excess of :func:`surrogate.error_model.cross_validated_excess` over folds of
+    materials, each fold's GPs refitted from the fitted kernels (``box``: the inputs' (lower, upper))."""
+    lower, upper = box
+    return cross_validated_excess(
+        lambda x, y: GPBank.from_sklearn(fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs,
+                                                 kernels=[g.gp.kernel_ for g in gps])),
+        (rows.inputs - lower) / (upper - lower), weights, rows.index[:, 0], rows.inputs[:, 5:], subset, seed=seed)
+
+
 def fit_emulator(
     data: StrainDataset,
     components: tuple[str, ...] = ("xx", "yy"),
@@ -420,12 +431,8 @@ def fit_emulator(
     x_unit = (rows.inputs[subset] - lower) / (upper - lower)
     pca_seconds = time.perf_counter() - start
     gps = fit_gps(x_unit, weights[subset], restarts=restarts, seed=seed, n_jobs=n_jobs)
-    bank = GPBank.from_sklearn(gps)
     cv_start = time.perf_counter()
-    excess = cross_validated_excess(
-        lambda x, y: GPBank.from_sklearn(fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs,
-                                                 kernels=[g.gp.kernel_ for g in gps])),
-        (rows.inputs - lower) / (upper - lower), weights, rows.index[:, 0], rows.inputs[:, 5:], subset, seed=seed)
+    excess = _cross_validated_excess(gps, rows, weights, (lower, upper), subset, seed, n_jobs)
     cv_seconds = time.perf_counter() - cv_start
     provenance = EmulatorProvenance(
         dataset=data.path.resolve(), dataset_config=data.config.to_toml(), mesh_sha256=data.mesh_sha256,
@@ -439,7 +446,7 @@ def fit_emulator(
     )
     emulator = Emulator(
         pcas=pcas,
-        gps=bank,
+        gps=GPBank.from_sklearn(gps),
         lower=lower,
         upper=upper,
         xy=data.xy,
