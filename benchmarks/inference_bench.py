@@ -26,10 +26,6 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "inference.json"
 
 
-def min_ess(summary: dict) -> float:
-    return min(min(e["ess_bulk"], e["ess_tail"]) for n, e in summary["parameters"].items())
-
-
 def make_paper_posterior(emulator, observed):
     """The same density, its likelihood computed by scikit-learn outside autograd."""
     from inference.model import SkinPosterior
@@ -78,10 +74,10 @@ def main() -> None:
         summary = s.summary()
         results[f"skinid_gp_variance_{gp_variance}"] = {
             "chains": 4, "warmup": 500, "draws": 1000, "seconds": s.seconds,
-            "max_r_hat": max(e["r_hat"] for e in summary["parameters"].values()),
-            "min_ess": min_ess(summary), "ess_per_second": min_ess(summary) / s.seconds,
-            "divergences": summary["divergences"], "gp_variance_over_posterior": s.gp_variance_spread,
-            "medians": {n: e["median"] for n, e in summary["parameters"].items()},
+            "max_r_hat": summary.max_r_hat,
+            "min_ess": summary.min_ess, "ess_per_second": summary.min_ess / s.seconds,
+            "divergences": summary.divergences, "gp_variance_over_posterior": s.gp_variance_spread,
+            "medians": {n: e.median for n, e in summary.parameters.items()},
         }
         print(gp_variance, json.dumps(results[f"skinid_gp_variance_{gp_variance}"]), flush=True)
     if not args.skip_paper:
@@ -92,8 +88,8 @@ def main() -> None:
         results["paper_configuration"] = {
             "chains": 1, "warmup": n, "draws": n, "seconds": s.seconds,
             "seconds_extrapolated_to_10000_plus_10000": s.seconds * 10000 / n,
-            "min_ess": min_ess(summary), "ess_per_second": min_ess(summary) / s.seconds,
-            "medians": {k: e["median"] for k, e in summary["parameters"].items()},
+            "min_ess": summary.min_ess, "ess_per_second": summary.min_ess / s.seconds,
+            "medians": {k: e.median for k, e in summary.parameters.items()},
         }
         print("paper", json.dumps(results["paper_configuration"]), flush=True)
     from skinfem.config import config_from_toml

@@ -83,13 +83,13 @@ def main() -> None:
             "explained_variance_at_M": {c: float(np.cumsum(p.explained_variance_ratio_)[p.n_components_ - 1])
                                         for c, p in emulator.pcas.items()},
             "fit_seconds": fit_seconds,
-            "validation": report["components"],
+            "validation": report.to_json()["components"],
             "prediction": time_prediction(emulator),
         }
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "validation"}), flush=True)
-        for c, r in report["components"].items():
-            print(c, "R2", np.round(r["r2_per_pc"], 4).tolist(), "rmse", r["field_rmse"], "floor", r["pca_floor_rmse"])
+        for c, r in report.components.items():
+            print(c, "R2", np.round(r.r2_per_pc, 4).tolist(), "rmse", r.field_rmse, "floor", r.pca_floor_rmse)
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     results[data.config.name] = rows
     RESULTS.parent.mkdir(parents=True, exist_ok=True)

@@ -300,17 +300,18 @@ def settings_of(args):
                            emulator_error=args.emulator_error == "on")
 
 
-def print_summary(summary: dict, out: Path) -> None:
+def print_summary(summary, out: Path) -> None:
+    """The table of an :class:`inference.sampling.PosteriorSummary`, its warnings and error budget."""
     print(f"{'':>8} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
-    for name, e in summary["parameters"].items():
-        true = f"{e['true']:.4g}" if "true" in e else ""
-        print(f"{name:>8} {e['median']:>10.4g} [{e['q2.5']:>10.4g}, {e['q97.5']:>10.4g}] "
-              f"{e['r_hat']:>6.3f} {min(e['ess_bulk'], e['ess_tail']):>6.0f} {true:>10}")
-    for w in summary["warnings"]:
+    for name, e in summary.parameters.items():
+        true = "" if e.true is None else f"{e.true:.4g}"
+        print(f"{name:>8} {e.median:>10.4g} [{e.q2_5:>10.4g}, {e.q97_5:>10.4g}] "
+              f"{e.r_hat:>6.3f} {e.ess:>6.0f} {true:>10}")
+    for w in summary.warnings:
         print(f"warning: {w}")
-    if summary.get("error_budget_statement"):
-        print(summary["error_budget_statement"][0].upper() + summary["error_budget_statement"][1:])
-    print(f"{summary['divergences']} divergences, {summary['seconds']:.1f} s")
+    if summary.error_budget_statement:
+        print(summary.error_budget_statement[0].upper() + summary.error_budget_statement[1:])
+    print(f"{summary.divergences} divergences, {summary.seconds:.1f} s")
     print(f"wrote {out}/posterior.nc, summary.json, corner.png")
 
 

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from skinfem.outputs import save_figure
+
+if TYPE_CHECKING:
+    from inference.sampling import PosteriorSummary
 
 LABELS = {
     "mu": "μ [MPa]",
@@ -76,18 +80,19 @@ def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
     return save_figure(fig, path)
 
 
-def accuracy_plot(rows: list[dict], bounds: np.ndarray, path: Path | str, title: str) -> Path:
-    """True value vs posterior median with 95 % intervals, one panel per parameter (Fig. 9)."""
+def accuracy_plot(summaries: list[PosteriorSummary], bounds: np.ndarray, path: Path | str, title: str) -> Path:
+    """True value vs posterior median with 95 % intervals, one panel per parameter (Fig. 9);
+    one point per posterior summary (its truth must be known)."""
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     names = list(LABELS)
     fig, axes = plt.subplots(1, 5, figsize=(17, 3.6))
     for k, (ax, n) in enumerate(zip(axes, names)):
-        true = np.array([r[n]["true"] for r in rows])
-        med = np.array([r[n]["median"] for r in rows])
-        lo = np.array([r[n]["q2.5"] for r in rows])
-        hi = np.array([r[n]["q97.5"] for r in rows])
+        true = np.array([s.parameters[n].true for s in summaries], dtype=float)
+        med = np.array([s.parameters[n].median for s in summaries])
+        lo = np.array([s.parameters[n].q2_5 for s in summaries])
+        hi = np.array([s.parameters[n].q97_5 for s in summaries])
         covered = (lo <= true) & (true <= hi)
         ax.errorbar(true, med, yerr=[med - lo, hi - med], fmt="o", ms=4, capsize=2,
                     color="C0", ecolor="C0", alpha=0.8)

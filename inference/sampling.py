@@ -11,8 +11,8 @@ halves the leapfrog steps of warm-up.
 
 Outputs (:func:`write_outputs`): ArviZ ``posterior.nc`` (groups posterior, sample_stats,
 log_likelihood, observed_data, prior, constant_data: :meth:`PosteriorSamples.inference_data`),
-``summary.json`` (median, 95 % interval, R-hat, bulk/tail ESS, divergences, acceptance rates, the
-true value when known) and ``corner.png``.
+``summary.json`` (:class:`PosteriorSummary`: median, 95 % interval, R-hat, bulk/tail ESS per
+:class:`ParameterSummary`, divergences, acceptance rates, the true value when known) and ``corner.png``.
 
 The kernel is set up through Pyro's public interface only (:func:`_nuts_kernel`), and sampler
 statistics come from it too: divergences and the acceptance rate from ``MCMC.diagnostics()``,
@@ -24,14 +24,17 @@ The Hamiltonian energy is not recorded: Pyro's NUTS does not expose the momentum
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, fields
 from importlib import metadata
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -213,6 +216,20 @@ class ChainResult:
     log_likelihood: np.ndarray  # (n_draws, n_obs, G)
 
 
+@contextlib.contextmanager
+def quiet_overflow():
+    """Silence the only warnings a chain raises: numpy's floating-point RuntimeWarnings in
+    :class:`~inference.density.FusedLogDensity` ("overflow encountered in exp", "... in square",
+    "invalid value encountered in multiply", ...) where a NUTS trajectory (the step-size search, a
+    divergent transition) reaches |u| of hundreds. The potential there is inf or NaN, which NUTS
+    treats as a divergence: the trajectory stops (after warm-up, it is counted in the summary).
+    Every other warning still shows."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", r"(overflow|invalid value|divide by zero) encountered",
+                                RuntimeWarning, r"inference\.density")
+        yield
+
+
 def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndarray, warmup: int, draws: int,
                seed: int, queue=None, chain: int = 0) -> ChainResult:
     from pyro.infer import MCMC
@@ -225,8 +242,7 @@ def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndar
     kernel = _nuts_kernel(posterior, inverse_mass, recorder.potential)
     mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup,
                 initial_params={"u": init}, disable_progbar=True, hook_fn=recorder.hook)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with quiet_overflow():
         mcmc.run()
     u = mcmc.get_samples()["u"]
     with torch.no_grad():
@@ -238,10 +254,6 @@ def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndar
     log_likelihood, stats["lp"] = draw_statistics(posterior, u)
     return ChainResult(values, diverging, float(kernel.step_size), time.perf_counter() - start,
                        float(diagnostics["acceptance rate"]["chain 0"]), stats, log_likelihood)
-
-
-def _worker(args):
-    return _run_chain(*args)
 
 
 # dimensions of the variables of posterior.nc beyond (chain, draw); datum = (observation, PC weight)
@@ -350,6 +362,146 @@ def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, s
     return {"/": root, "prior": prior, **GROUP_ATTRS}
 
 
+@dataclass(frozen=True)
+class ParameterSummary:
+    """One sampled parameter of ``summary.json``, in its unit (theta in degrees, sigma in PC-weight units).
+
+    ``prior`` and ``interval_share_of_prior`` are given for the five skin parameters only, ``true``
+    and ``covered`` when the truth is known; they are left out of ``summary.json`` otherwise.
+    """
+
+    median: float
+    q2_5: float  # 2.5 % quantile of the draws ("q2.5" in summary.json)
+    q97_5: float  # 97.5 % quantile ("q97.5")
+    r_hat: float  # rank-normalised split R-hat (ArviZ)
+    ess_bulk: float
+    ess_tail: float
+    prior: tuple[float, float] | None = None  # bounds of the uniform prior
+    interval_share_of_prior: float | None = None  # (q97_5 - q2_5) / prior range [-]
+    true: float | None = None
+    covered: bool | None = None  # q2_5 <= true <= q97_5
+
+    JSON_KEYS: ClassVar[dict[str, str]] = {"q2_5": "q2.5", "q97_5": "q97.5"}  # attribute -> summary.json key
+
+    @property
+    def ess(self) -> float:
+        """The smaller of the bulk and tail effective sample sizes."""
+        return min(self.ess_bulk, self.ess_tail)
+
+    def to_json(self) -> dict:
+        """The entry of ``summary.json`` ("parameters" -> name)."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is not None or f.default is not None:
+                out[self.JSON_KEYS.get(f.name, f.name)] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    @classmethod
+    def from_json(cls, entry: dict) -> ParameterSummary:
+        """Read an entry of ``summary.json``'s "parameters"."""
+        attributes = {v: k for k, v in cls.JSON_KEYS.items()}
+        values = {attributes.get(k, k): v for k, v in entry.items()}
+        if values.get("prior") is not None:
+            values["prior"] = tuple(values["prior"])
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class GpVarianceSpread:
+    """The GP variance over posterior draws against the one fixed at the mode: quantiles of their ratio [-]."""
+
+    ratio_median: float
+    ratio_5: float
+    ratio_95: float
+
+
+@dataclass(frozen=True)
+class PosteriorSummary:
+    """What ``summary.json`` holds (:func:`write_outputs`); :meth:`to_json` is its exact content.
+
+    Files written before ``acceptance_rates``, ``gp_variance_over_posterior`` or the error budget
+    were recorded read with those empty or None.
+    """
+
+    parameters: dict[str, ParameterSummary]  # by name: mu, k1, k2, kappa, theta, then sigma_<component>
+    chains: int
+    draws_per_chain: int
+    divergences: int  # divergent transitions after warm-up, all chains
+    step_sizes: tuple[float, ...]  # per chain, at the end of warm-up
+    acceptance_rates: tuple[float, ...]  # Pyro's, per chain
+    seconds: float  # wall time of the mode search and the chains
+    gp_variance_over_posterior: GpVarianceSpread | None  # with the GP variance fixed at the mode
+    error_budget: ErrorBudget | None  # at the posterior medians
+    error_budget_statement: str | None  # which term limits the intervals
+    warnings: tuple[str, ...]  # the model's, then R-hat, ESS and divergences
+    observations: tuple[str, ...] | None = None  # sources of the observations, when given
+
+    @property
+    def max_r_hat(self) -> float:
+        """The largest R-hat over all parameters (noise sigmas included)."""
+        return max(p.r_hat for p in self.parameters.values())
+
+    @property
+    def min_ess(self) -> float:
+        """The smallest bulk or tail ESS over all parameters (noise sigmas included)."""
+        return min(p.ess for p in self.parameters.values())
+
+    def to_json(self) -> dict:
+        """The content of ``summary.json`` (JSON types; keys in the file's order)."""
+        out = {
+            "parameters": {n: p.to_json() for n, p in self.parameters.items()},
+            "chains": self.chains,
+            "draws_per_chain": self.draws_per_chain,
+            "divergences": self.divergences,
+            "step_sizes": list(self.step_sizes),
+            "acceptance_rates": list(self.acceptance_rates),
+            "seconds": self.seconds,
+            "gp_variance_over_posterior": _asdict_or_none(self.gp_variance_over_posterior),
+            "error_budget": _asdict_or_none(self.error_budget),
+            "error_budget_statement": self.error_budget_statement,
+            "warnings": list(self.warnings),
+        }
+        if self.observations is not None:
+            out["observations"] = list(self.observations)
+        return out
+
+    @classmethod
+    def from_json(cls, summary: dict) -> PosteriorSummary:
+        """Read the content of a ``summary.json`` (see the class doc for older files)."""
+        spread, budget = summary.get("gp_variance_over_posterior"), summary.get("error_budget")
+        observations = summary.get("observations")
+        return cls(
+            parameters={n: ParameterSummary.from_json(e) for n, e in summary["parameters"].items()},
+            chains=summary["chains"],
+            draws_per_chain=summary["draws_per_chain"],
+            divergences=summary["divergences"],
+            step_sizes=tuple(summary["step_sizes"]),
+            acceptance_rates=tuple(summary.get("acceptance_rates", ())),
+            seconds=summary["seconds"],
+            gp_variance_over_posterior=None if spread is None else GpVarianceSpread(**spread),
+            error_budget=None if budget is None else ErrorBudget(**budget),
+            error_budget_statement=summary.get("error_budget_statement"),
+            warnings=tuple(summary["warnings"]),
+            observations=None if observations is None else tuple(observations),
+        )
+
+    @classmethod
+    def load(cls, path: Path | str) -> PosteriorSummary:
+        """Read a ``summary.json``."""
+        return cls.from_json(json.loads(Path(path).read_text()))
+
+    def write(self, path: Path | str) -> Path:
+        """Write ``summary.json`` (2-space indented JSON, a final newline)."""
+        path = Path(path)
+        path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        return path
+
+
+def _asdict_or_none(value) -> dict | None:
+    return None if value is None else asdict(value)
+
+
 @dataclass
 class PosteriorSamples:
     """Draws of all chains, their diagnostics and what ``posterior.nc`` records of the model."""
@@ -389,7 +541,28 @@ class PosteriorSamples:
         }
         return az.from_dict(groups, dims=DIMS, coords=COORDS, attrs=self.attrs)
 
-    def summary(self) -> dict:
+    def summary(self, observations: list[str] | None = None) -> PosteriorSummary:
+        """Median, 95 % interval, R-hat and ESS per parameter, sampler statistics, error budget, warnings;
+        ``observations``: the sources of the observations, recorded when given."""
+        parameters = self._parameter_summaries()
+        return PosteriorSummary(
+            parameters=parameters,
+            chains=int(self.draws.shape[0]),
+            draws_per_chain=int(self.draws.shape[1]),
+            divergences=int(self.diverging.sum()),
+            step_sizes=tuple(self.step_sizes),
+            acceptance_rates=tuple(self.acceptance_rates),
+            seconds=self.seconds,
+            gp_variance_over_posterior=None if self.gp_variance_spread is None
+            else GpVarianceSpread(**self.gp_variance_spread),
+            error_budget=self.error_budget,
+            error_budget_statement=None if self.error_budget is None
+            else self.error_budget.statement(self.error_budget_at),
+            warnings=tuple(self.warnings(parameters)),
+            observations=None if observations is None else tuple(observations),
+        )
+
+    def _parameter_summaries(self) -> dict[str, ParameterSummary]:
         import arviz as az
 
         dt = az.from_dict({"posterior": self.posterior_dict()})
@@ -398,76 +571,62 @@ class PosteriorSamples:
         out = {}
         for k, n in enumerate(self.names):
             x = self.draws[..., k].ravel()
-            entry = {
-                "median": float(np.median(x)),
-                "q2.5": float(np.percentile(x, 2.5)),
-                "q97.5": float(np.percentile(x, 97.5)),
-                "r_hat": float(rhat[n].values),
-                "ess_bulk": float(bulk[n].values),
-                "ess_tail": float(tail[n].values),
-            }
+            lo, hi = float(np.percentile(x, 2.5)), float(np.percentile(x, 97.5))
+            skin = {}
             if k < 5:
-                entry["prior"] = self.bounds[k].tolist()
-                entry["interval_share_of_prior"] = (entry["q97.5"] - entry["q2.5"]) / float(np.ptp(self.bounds[k]))
+                skin = {"prior": tuple(self.bounds[k].tolist()),
+                        "interval_share_of_prior": (hi - lo) / float(np.ptp(self.bounds[k]))}
                 if self.truth is not None:
-                    entry["true"] = float(self.truth[k])
-                    entry["covered"] = bool(entry["q2.5"] <= self.truth[k] <= entry["q97.5"])
-            out[n] = entry
-        return {
-            "parameters": out,
-            "chains": int(self.draws.shape[0]),
-            "draws_per_chain": int(self.draws.shape[1]),
-            "divergences": int(self.diverging.sum()),
-            "step_sizes": self.step_sizes,
-            "acceptance_rates": self.acceptance_rates,
-            "seconds": self.seconds,
-            "gp_variance_over_posterior": self.gp_variance_spread,
-            "error_budget": None if self.error_budget is None else asdict(self.error_budget),
-            "error_budget_statement": None if self.error_budget is None
-            else self.error_budget.statement(self.error_budget_at),
-            "warnings": self.warnings(out),
-        }
+                    skin.update(true=float(self.truth[k]), covered=bool(lo <= self.truth[k] <= hi))
+            out[n] = ParameterSummary(float(np.median(x)), lo, hi, float(rhat[n].values), float(bulk[n].values),
+                                      float(tail[n].values), **skin)
+        return out
 
-    def warnings(self, table: dict) -> list[str]:
+    def warnings(self, table: dict[str, ParameterSummary]) -> list[str]:
         messages = list(self.model_warnings)
         for n, e in table.items():
-            if e["r_hat"] > RHAT_LIMIT:
-                messages.append(f"{n}: R-hat {e['r_hat']:.3f} > {RHAT_LIMIT} (chains disagree; sample longer)")
-            if min(e["ess_bulk"], e["ess_tail"]) < ESS_LIMIT:
-                messages.append(f"{n}: ESS {min(e['ess_bulk'], e['ess_tail']):.0f} < {ESS_LIMIT}")
+            if e.r_hat > RHAT_LIMIT:
+                messages.append(f"{n}: R-hat {e.r_hat:.3f} > {RHAT_LIMIT} (chains disagree; sample longer)")
+            if e.ess < ESS_LIMIT:
+                messages.append(f"{n}: ESS {e.ess:.0f} < {ESS_LIMIT}")
         if self.diverging.any():
             messages.append(f"{int(self.diverging.sum())} divergent transitions")
         return messages
 
 
 def _run_chains(posterior: SkinPosterior, inits: list[np.ndarray], inverse_mass: np.ndarray, warmup: int,
-                draws: int, seeds: list[int], n_jobs: int, bar) -> list:
+                draws: int, seeds: list[int], n_jobs: int, bar) -> list[ChainResult]:
     """One chain per start in ``inits``, ``n_jobs`` at a time (spawned processes when > 1),
     advancing the progress ``bar`` (or None) as they go."""
-    chains = len(inits)
     if n_jobs == 1:
         results = []
-        for c in range(chains):
+        for c in range(len(inits)):
             results.append(_run_chain(posterior, inits[c], inverse_mass, warmup, draws, seeds[c]))
             if bar is not None:
                 bar.update(warmup + draws)
-    else:
-        ctx = mp.get_context("spawn")
-        manager = ctx.Manager()
-        queue = manager.Queue()
-        with ctx.Pool(n_jobs) as pool:
-            job = pool.map_async(
-                _worker, [(posterior, inits[c], inverse_mass, warmup, draws, seeds[c], queue, c) for c in range(chains)]
-            )
-            while not job.ready():
-                job.wait(0.2)
-                while not queue.empty():
-                    _, n = queue.get()
-                    if bar is not None:
-                        bar.update(n)
-            results = job.get()
-        manager.shutdown()
-    return results
+        return results
+    ctx = mp.get_context("spawn")
+    with ctx.Manager() as manager, ProcessPoolExecutor(n_jobs, mp_context=ctx) as pool:
+        queue = manager.Queue()  # (chain, iterations) every 50 iterations of a chain
+        futures = [pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], queue, c)
+                   for c in range(len(inits))]
+        pending = futures
+        while pending:
+            done, pending = wait(pending, timeout=0.2, return_when=FIRST_EXCEPTION)
+            _advance(bar, queue)
+            error = next((f.exception() for f in done if f.exception() is not None), None)
+            if error is not None:
+                pool.shutdown(cancel_futures=True)  # drop the chains not started yet
+                raise error
+        return [f.result() for f in futures]
+
+
+def _advance(bar, queue) -> None:
+    """Advance ``bar`` (or None) by the iterations the chains reported to ``queue`` so far."""
+    while not queue.empty():
+        _, n = queue.get()
+        if bar is not None:
+            bar.update(n)
 
 
 def sample_posterior(
@@ -518,17 +677,19 @@ def sample_posterior(
     return samples
 
 
-def write_outputs(samples: PosteriorSamples, out: Path | str, extra: dict | None = None) -> dict:
+def write_outputs(samples: PosteriorSamples, out: Path | str,
+                  observations: list[str] | None = None) -> PosteriorSummary:
     """posterior.nc, summary.json and corner.png into the folder ``out`` (written under a
-    temporary name and renamed, so a folder with a summary.json is complete); returns the summary."""
+    temporary name and renamed, so a folder with a summary.json is complete); returns the summary
+    (``observations``: the sources of the observations, recorded in it)."""
     from inference.plots import corner_plot
 
-    summary = {**samples.summary(), **(extra or {})}
+    summary = samples.summary(observations)
 
     def write(tmp: Path) -> None:
         tmp.mkdir()
         samples.inference_data().to_netcdf(tmp / "posterior.nc")
-        (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        summary.write(tmp / "summary.json")
         corner_plot(samples, tmp / "corner.png")
 
     write_atomically(out, write)

@@ -15,7 +15,7 @@ import numpy as np
 from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, accuracy_plot, pyplot, save_figure
-from inference.sampling import sample_posterior, write_outputs
+from inference.sampling import PosteriorSummary, sample_posterior, write_outputs
 from skinfem.io import StrainDataset
 from skinfem.outputs import write_text
 from surrogate.emulator import Emulator
@@ -36,17 +36,17 @@ class SamplerSettings:
 def posterior_of(
     emulator: Emulator, observations: list[Observation], settings: SamplerSettings, out: Path | None,
     noise: str = "halfcauchy",
-) -> dict:
+) -> PosteriorSummary:
     """Sample one posterior; write its outputs to ``out`` if given. Returns the summary."""
     posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), noise=noise,
                               gp_variance=settings.gp_variance, emulator_error=settings.emulator_error)
     samples = sample_posterior(posterior, chains=settings.chains, warmup=settings.warmup,
                                draws=settings.draws, seed=settings.seed, n_jobs=settings.n_jobs,
                                progress=settings.progress)
-    extra = {"observations": [o.source for o in observations]}
+    sources = [o.source for o in observations]
     if out is None:
-        return {**samples.summary(), **extra}
-    return write_outputs(samples, out, extra)
+        return samples.summary(sources)
+    return write_outputs(samples, out, sources)
 
 
 def test_set_study(
@@ -66,29 +66,28 @@ def test_set_study(
     """
     out = Path(out)
     materials = list(np.flatnonzero(data.split == 1)) if materials is None else materials
-    rows = []
+    summaries = []
     for i in materials:
         directory = out / f"material_{i:03d}"
-        summary_path = directory / "summary.json"
-        if summary_path.exists():
-            rows.append(json.loads(summary_path.read_text())["parameters"])
+        if (directory / "summary.json").exists():
+            summaries.append(PosteriorSummary.load(directory / "summary.json"))
             continue
         obs = from_dataset(data, int(i), designs, frames)
-        rows.append(posterior_of(emulator, obs, settings, directory)["parameters"])
+        summaries.append(posterior_of(emulator, obs, settings, directory))
     names = list(LABELS)
-    coverage = {n: float(np.mean([r[n]["covered"] for r in rows])) for n in names}
-    width = {n: float(np.median([r[n]["interval_share_of_prior"] for r in rows])) for n in names}
+    coverage = {n: float(np.mean([s.parameters[n].covered for s in summaries])) for n in names}
+    width = {n: float(np.median([s.parameters[n].interval_share_of_prior for s in summaries])) for n in names}
     identified = {n: bool(coverage[n] >= 0.8 and width[n] < 0.5) for n in names}
     label = label or f"designs {designs}, frames {frames}"
-    accuracy_plot(rows, emulator.param_bounds, out / "accuracy.png",
-                  f"{label}: posterior median and 95 % interval vs truth ({len(rows)} test materials)")
+    accuracy_plot(summaries, emulator.param_bounds, out / "accuracy.png",
+                  f"{label}: posterior median and 95 % interval vs truth ({len(summaries)} test materials)")
     result = {
         "setup": {"designs": designs, "frames": frames, "label": label},
         "materials": [int(i) for i in materials],
         "coverage_95": coverage,
         "median_interval_share_of_prior": width,
         "identified": identified,
-        "max_r_hat": float(max(r[n]["r_hat"] for r in rows for n in names)),
+        "max_r_hat": float(max(s.parameters[n].r_hat for s in summaries for n in names)),
     }
     write_text(out / "study.json", json.dumps(result, indent=2) + "\n")
     return result
@@ -165,7 +164,6 @@ def noise_study(
     are reused. Writes ``<out>/README.md``.
     """
     from inference.noise import add_noise
-    from surrogate.emulator import fit_emulator
     from surrogate.validation import validate
 
     out = Path(out)
@@ -181,12 +179,7 @@ def noise_study(
             if not path.exists():
                 add_noise(data, path, noise[0], noise[1], seed=k)
         case_data = StrainDataset.open(path)
-        emu_dir = folder / "emulator"
-        if (emu_dir / "meta.json").exists():
-            emulator = Emulator.load(emu_dir)
-        else:
-            emulator = fit_emulator(case_data, **fit_options)
-            emulator.save(emu_dir)
+        emulator = _case_emulator(case_data, folder / "emulator", fit_options)
         if noise is None:
             # noisy cases keep the clean number of PCs (as the paper does): a variance threshold
             # on noisy fields would retain hundreds of noise components
@@ -200,7 +193,7 @@ def noise_study(
             "explained_variance": {c: np.cumsum(p.explained_variance_ratio_)[:12].tolist()
                                    for c, p in emulator.pcas.items()},
             "n_components": emulator.n_weights,
-            "r2_per_pc": {c: r["r2_per_pc"] for c, r in report["components"].items()},
+            "r2_per_pc": {c: list(r.r2_per_pc) for c, r in report.components.items()},
             "study": study,
         }
     write_text(out / "noise_study.json", json.dumps(results, indent=2) + "\n")
@@ -209,6 +202,17 @@ def noise_study(
                      data.designs[design], out / "sensitivity.png")
     write_noise_report(results, out)
     return results
+
+
+def _case_emulator(data: StrainDataset, folder: Path, fit_options: dict) -> Emulator:
+    """The emulator of a noise-study case: read from ``folder`` if fitted, else fitted and saved there."""
+    from surrogate.emulator import fit_emulator
+
+    if (folder / "meta.json").exists():
+        return Emulator.load(folder)
+    emulator = fit_emulator(data, **fit_options)
+    emulator.save(folder)
+    return emulator
 
 
 def explained_variance_plot(results: dict, path: Path) -> Path:

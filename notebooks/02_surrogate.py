@@ -49,9 +49,9 @@ for c, pca in emulator.pcas.items():
 # %%
 report, arrays = validate(emulator, data)
 plot_predicted_vs_true(emulator, arrays, out / "predicted_vs_true.png")
-for c, r in report["components"].items():
-    print(c, "R² per PC:", np.round(r["r2_per_pc"], 5))
-assert min(min(r["r2_per_pc"]) for r in report["components"].values()) > 0.99
+for c, r in report.components.items():
+    print(c, "R² per PC:", np.round(r.r2_per_pc, 5))
+assert min(r.min_r2 for r in report.components.values()) > 0.99
 
 # %% [markdown]
 # ![predicted vs true](../out/notebooks/02/predicted_vs_true.png)

@@ -51,8 +51,8 @@ for name, observations in setups.items():
     samples = sample_posterior(posterior, chains=2, warmup=300, draws=300, seed=1, n_jobs=2, progress=False)
     path = out / f"corner_{name.replace(' ', '_')}.png"
     corner_plot(samples, path, title=f"{name}: posterior (blue) vs prior (grey), truth red")
-    table = samples.summary()["parameters"]
-    widths[name] = {n: (e["q97.5"] - e["q2.5"]) / np.ptp(emulator.param_bounds[i])
+    table = samples.summary().parameters
+    widths[name] = {n: (e.q97_5 - e.q2_5) / np.ptp(emulator.param_bounds[i])
                     for i, (n, e) in enumerate(table.items()) if i < 5}
     print(f"{name:>13}: 95 % interval / prior width",
           {n: round(w, 2) for n, w in widths[name].items()})

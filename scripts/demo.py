@@ -18,6 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from inference.sampling import PosteriorSummary
+from surrogate.validation import ValidationReport
+
 BIN = Path(sys.executable).parent
 
 
@@ -113,7 +116,7 @@ def main() -> None:
     if not (post / "summary.json").exists():
         run("infer", "--emulator", str(emu), "--data", str(data), "--material", str(material),
             "--designs", str(mixed), "--out", str(post), "--gp-variance", "mode", "--force")
-    summary = json.loads((post / "summary.json").read_text())
+    summary = PosteriorSummary.load(post / "summary.json")
 
     step(f"4/5 model criticism: material {material} with a hidden pre-stretch 1.08 x 1.02 at 30 deg")
     criticism = hidden_prestretch_check(out, emu, dataset.params[material])
@@ -123,25 +126,26 @@ def main() -> None:
     print(f"\ndemo finished in {time.perf_counter() - start:.0f} s; report: {out / 'report.md'}")
 
 
-def write_report(out: Path, dataset, emulator, material: int, mixed: int, summary: dict, criticism: dict) -> None:
+def write_report(out: Path, dataset, emulator, material: int, mixed: int, summary: PosteriorSummary,
+                 criticism: dict) -> None:
     """report.md with the strain maps, the posterior table and the criticism's verdict, and the
     README's overview figure."""
     from inference.plots import strain_maps
 
     truth = dataset.params[material]
     fe = dataset.strain(material, mixed, -1)
-    median = np.array([summary["parameters"][n]["median"] for n in ("mu", "k1", "k2", "kappa", "theta")])
+    median = np.array([summary.parameters[n].median for n in ("mu", "k1", "k2", "kappa", "theta")])
     pred = emulator.predict_fields(median[None], dataset.designs[mixed], 1.0)[0]
     strain_maps(dataset.xy, [fe[:, 0], fe[:, 1], pred[:, 0] - fe[:, 0], pred[:, 1] - fe[:, 1]],
                 ["FE E_xx", "FE E_yy", "E_xx: emulator − FE", "E_yy: emulator − FE"],
                 out / "strain_maps.png", theta_deg=float(truth[4]),
                 suptitle=f"material {material}, design (0.05, −0.05), t = 1")
     rows = "\n".join(
-        f"| {n} | {e['true']:.4g} | {e['median']:.4g} | [{e['q2.5']:.4g}, {e['q97.5']:.4g}] | "
-        f"{'yes' if e['covered'] else 'no'} | {e['r_hat']:.3f} | {min(e['ess_bulk'], e['ess_tail']):.0f} |"
-        for n, e in summary["parameters"].items() if "true" in e
+        f"| {n} | {e.true:.4g} | {e.median:.4g} | [{e.q2_5:.4g}, {e.q97_5:.4g}] | "
+        f"{'yes' if e.covered else 'no'} | {e.r_hat:.3f} | {e.ess:.0f} |"
+        for n, e in summary.parameters.items() if e.true is not None
     )
-    val = json.loads((out / "emulator" / "validation.json").read_text())["components"]
+    val = ValidationReport.load(out / "emulator" / "validation.json").components
     versions = "\n".join(
         f"| {v['label']} | {v['metrics']['rmse']:.2e} | {v['metrics']['chi2_per_dof']:.2f} | "
         f"{v['metrics']['ppc_p']:.3f} | {'no' if v['metrics']['structured'] else 'yes'} |"
@@ -149,8 +153,8 @@ def write_report(out: Path, dataset, emulator, material: int, mixed: int, summar
     )
     (out / "report.md").write_text(REPORT.format(
         data=dataset.path.name, cells=dataset.xy.shape[0], n_weights=emulator.n_weights,
-        r2_xx=", ".join(f"{v:.4f}" for v in val["xx"]["r2_per_pc"]),
-        r2_yy=", ".join(f"{v:.4f}" for v in val["yy"]["r2_per_pc"]),
+        r2_xx=", ".join(f"{v:.4f}" for v in val["xx"].r2_per_pc),
+        r2_yy=", ".join(f"{v:.4f}" for v in val["yy"].r2_per_pc),
         material=material, rows=rows, verdict=criticism["verdict"], versions=versions))
     check = out / "check"
     overview(out, out / "strain_maps.png", [check / "regions.png", check / "error_falls.png"])

@@ -33,12 +33,13 @@ def build_parser() -> CommandParser:
     return parser
 
 
-def print_report(report: dict, directory: Path) -> None:
-    for c, r in report["components"].items():
-        r2 = ", ".join(f"{v:.4f}" for v in r["r2_per_pc"])
+def print_report(report, directory: Path) -> None:
+    """Scores of a :class:`surrogate.validation.ValidationReport` per component."""
+    for c, r in report.components.items():
+        r2 = ", ".join(f"{v:.4f}" for v in r.r2_per_pc)
         print(
-            f"E_{c}: R² per PC [{r2}]; field RMSE {r['field_rmse']:.2e} "
-            f"({100 * r['field_rmse_relative']:.2f} % of RMS strain; PCA floor {r['pca_floor_rmse']:.2e})"
+            f"E_{c}: R² per PC [{r2}]; field RMSE {r.field_rmse:.2e} "
+            f"({100 * r.field_rmse_relative:.2f} % of RMS strain; PCA floor {r.pca_floor_rmse:.2e})"
         )
     print(f"wrote {directory / 'validation.json'} and {directory / 'validation.png'}")
 
@@ -83,17 +84,17 @@ def cmd_fit(args) -> None:
         f"in {time.perf_counter() - start:.1f} s"
     )
 
-    report = {}
+    reports = []  # the validation report, unless --no-validate
 
     def write(tmp: Path) -> None:
         emulator.save(tmp)
         plot_explained_variance(emulator, tmp / "explained_variance.png")
         if not args.no_validate:
-            report.update(validate_directory(tmp, args.data))
+            reports.append(validate_directory(tmp, args.data))
 
     write_atomically(args.out, write)
     print(f"wrote {args.out}")
-    if report:
+    for report in reports:
         print_report(report, args.out)
 
 

@@ -9,6 +9,7 @@ can see whether the PCA truncation or the GPs dominate.
 from __future__ import annotations
 
 import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +27,75 @@ def r2_score(true: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return 1.0 - ss_res / ss_tot
 
 
-def validate(emulator: Emulator, data: StrainDataset) -> tuple[dict, dict]:
+@dataclass(frozen=True)
+class ComponentValidation:
+    """Scores of one strain component on the held-out rows (fields in strain units)."""
+
+    r2_per_pc: tuple[float, ...]  # R^2 of each retained PC weight [-]
+    min_r2: float  # the smallest of them [-]
+    field_rmse: float  # RMS error of the emulated field [-]
+    field_rmse_relative: float  # field_rmse over the RMS simulated strain [-]
+    pca_floor_rmse: float  # RMS error of the PCA reconstruction of the simulated field (the floor) [-]
+    field_max_abs_error: float  # largest |emulated - simulated| over cells and rows [-]
+    field_rms: float  # RMS simulated strain [-]
+    weight_z_rms: tuple[float, ...]  # per PC weight: RMS of (true - mean) / GP sd (1: calibrated) [-]
+
+    def held_out_scores(self) -> HeldOutScores:
+        """What ``meta.json`` records of these scores."""
+        return HeldOutScores(min_r2=self.min_r2, field_rmse=self.field_rmse,
+                             field_rmse_relative=self.field_rmse_relative)
+
+    def to_json(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_json(cls, entry: dict) -> ComponentValidation:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in entry.items()})
+
+
+@dataclass(frozen=True)
+class ValidationReport:
+    """What ``validation.json`` holds: the held-out materials, their rows and the scores per component."""
+
+    test_materials: tuple[int, ...]  # material indices of the dataset's test split
+    n_rows: int  # converged (material, design, frame) rows validated on
+    components: dict[str, ComponentValidation]  # by strain component: xx, yy[, xy]
+
+    def to_json(self) -> dict:
+        """The content of ``validation.json``."""
+        return {"test_materials": list(self.test_materials), "n_rows": self.n_rows,
+                "components": {c: r.to_json() for c, r in self.components.items()}}
+
+    @classmethod
+    def from_json(cls, report: dict) -> ValidationReport:
+        return cls(tuple(report["test_materials"]), report["n_rows"],
+                   {c: ComponentValidation.from_json(r) for c, r in report["components"].items()})
+
+    @classmethod
+    def load(cls, path: Path | str) -> ValidationReport:
+        """Read a ``validation.json``."""
+        return cls.from_json(json.loads(Path(path).read_text()))
+
+    def write(self, path: Path | str) -> Path:
+        """Write ``validation.json`` (2-space indented JSON, a final newline)."""
+        return write_text(path, json.dumps(self.to_json(), indent=2) + "\n")
+
+
+@dataclass(frozen=True)
+class ValidationArrays:
+    """PC weights of the validation rows (n_rows, G), for plots."""
+
+    true: np.ndarray  # projections of the simulated fields
+    pred: np.ndarray  # the emulator's mean
+    sd: np.ndarray  # the emulator's sd
+    index: np.ndarray  # (n_rows, 3) material, design, frame of each row
+
+
+def validate(emulator: Emulator, data: StrainDataset) -> tuple[ValidationReport, ValidationArrays]:
     """Scores on the test materials of ``data``.
 
     Returns:
-        (report, arrays): the JSON-able report and the true/predicted weights for plots.
+        (report, arrays): the report (``validation.json``) and the true/predicted weights for plots.
     """
     if data.mesh_sha256 != emulator.provenance.mesh_sha256:
         raise ValueError(f"'{data.path}' was simulated on another mesh than the emulator's data")
@@ -47,26 +112,26 @@ def validate(emulator: Emulator, data: StrainDataset) -> tuple[dict, dict]:
     floor_fields = emulator.fields_of_weights(true_w)
     r2 = r2_score(true_w, pred_w)
     z = (true_w - pred_w) / np.sqrt(pred_var)
-    report = {"test_materials": test.tolist(), "n_rows": int(len(rows.index)), "components": {}}
+    components = {}
     for k, (c, sl) in enumerate(emulator.weight_slices().items()):
         err = pred_fields[..., k] - fields[..., k]
         floor = floor_fields[..., k] - fields[..., k]
         rms = float(np.sqrt(np.mean(fields[..., k] ** 2)))
-        report["components"][c] = {
-            "r2_per_pc": r2[sl].tolist(),
-            "min_r2": float(r2[sl].min()),
-            "field_rmse": float(np.sqrt(np.mean(err**2))),
-            "field_rmse_relative": float(np.sqrt(np.mean(err**2)) / rms),
-            "pca_floor_rmse": float(np.sqrt(np.mean(floor**2))),
-            "field_max_abs_error": float(np.abs(err).max()),
-            "field_rms": rms,
-            "weight_z_rms": np.sqrt(np.mean(z[:, sl] ** 2, axis=0)).tolist(),
-        }
-    arrays = {"true": true_w, "pred": pred_w, "sd": np.sqrt(pred_var), "index": rows.index}
-    return report, arrays
+        components[c] = ComponentValidation(
+            r2_per_pc=tuple(r2[sl].tolist()),
+            min_r2=float(r2[sl].min()),
+            field_rmse=float(np.sqrt(np.mean(err**2))),
+            field_rmse_relative=float(np.sqrt(np.mean(err**2)) / rms),
+            pca_floor_rmse=float(np.sqrt(np.mean(floor**2))),
+            field_max_abs_error=float(np.abs(err).max()),
+            field_rms=rms,
+            weight_z_rms=tuple(np.sqrt(np.mean(z[:, sl] ** 2, axis=0)).tolist()),
+        )
+    report = ValidationReport(tuple(test.tolist()), int(len(rows.index)), components)
+    return report, ValidationArrays(true_w, pred_w, np.sqrt(pred_var), rows.index)
 
 
-def plot_predicted_vs_true(emulator: Emulator, arrays: dict, path: Path | str) -> Path:
+def plot_predicted_vs_true(emulator: Emulator, arrays: ValidationArrays, path: Path | str) -> Path:
     """The paper's Fig. 5: predicted vs simulated PC weight, one panel per PC and component."""
     import matplotlib
 
@@ -83,7 +148,7 @@ def plot_predicted_vs_true(emulator: Emulator, arrays: dict, path: Path | str) -
                 ax.axis("off")
                 continue
             g = sl.start + j
-            t, p = arrays["true"][:, g], arrays["pred"][:, g]
+            t, p = arrays.true[:, g], arrays.pred[:, g]
             ax.scatter(t, p, s=3, alpha=0.5, color="C0")
             lim = [min(t.min(), p.min()), max(t.max(), p.max())]
             ax.plot(lim, lim, color="k", lw=0.8)
@@ -122,21 +187,18 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
     return save_figure(fig, path, dpi=130)
 
 
-def held_out_scores(report: dict) -> dict[str, HeldOutScores]:
+def held_out_scores(report: ValidationReport) -> dict[str, HeldOutScores]:
     """The per-component scores of a :func:`validate` report that ``meta.json`` records."""
-    return {
-        c: HeldOutScores(min_r2=r["min_r2"], field_rmse=r["field_rmse"], field_rmse_relative=r["field_rmse_relative"])
-        for c, r in report["components"].items()
-    }
+    return {c: r.held_out_scores() for c, r in report.components.items()}
 
 
-def validate_directory(directory: Path | str, data_path: Path | str | None = None) -> dict:
+def validate_directory(directory: Path | str, data_path: Path | str | None = None) -> ValidationReport:
     """Validate a saved emulator: ``validation.json`` + ``validation.png`` into it, scores into ``meta.json``."""
     directory = Path(directory)
     emulator = Emulator.load(directory)
     data = StrainDataset.open(data_path or emulator.provenance.dataset)
     report, arrays = validate(emulator, data)
-    write_text(directory / "validation.json", json.dumps(report, indent=2) + "\n")
+    report.write(directory / "validation.json")
     plot_predicted_vs_true(emulator, arrays, directory / "validation.png")
     emulator.provenance = emulator.provenance.validated(held_out_scores(report))
     emulator.save_meta(directory)

@@ -36,7 +36,7 @@ import pytest
 from inference.__main__ import check_strain_scale, main
 from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, map_to_cells, read_measurement, write_measurement
-from inference.sampling import sample_posterior
+from inference.sampling import PosteriorSummary, sample_posterior
 from inference.studies import SamplerSettings
 from skinfem.config import PARAM_NAMES, load_config
 from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
@@ -299,30 +299,29 @@ def posteriors(files, field, emulator, tmp_path_factory):
     return out
 
 
-def posterior_summary(emulator: Emulator, observation: Observation) -> dict:
-    """``summary.json``'s content for one observation: what ``inference.studies.posterior_of`` does
-    (same posterior and sampler call), without writing files; a summary object is turned into its JSON."""
+def posterior_summary(emulator: Emulator, observation: Observation) -> PosteriorSummary:
+    """The posterior summary of one observation: what ``inference.studies.posterior_of`` does
+    (same posterior and sampler call), without writing files."""
     posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, [observation]), noise="known",
                               gp_variance=SETTINGS.gp_variance, emulator_error=SETTINGS.emulator_error)
     samples = sample_posterior(posterior, chains=SETTINGS.chains, warmup=SETTINGS.warmup, draws=SETTINGS.draws,
                                seed=SETTINGS.seed, n_jobs=SETTINGS.n_jobs, progress=SETTINGS.progress)
-    summary = samples.summary()
-    return summary if isinstance(summary, dict) else summary.to_json()
+    return samples.summary()
 
 
-def agreement(a: dict, b: dict, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def agreement(a: PosteriorSummary, b: PosteriorSummary, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(|median difference| / prior range, overlap / union of the 95 % intervals) per skin parameter."""
     shift, overlap = [], []
     for k, name in enumerate(PARAM_NAMES):
-        pa, pb = a["parameters"][name], b["parameters"][name]
-        shift.append(abs(pa["median"] - pb["median"]) / np.ptp(bounds[k]))
-        lo, hi = max(pa["q2.5"], pb["q2.5"]), min(pa["q97.5"], pb["q97.5"])
-        union = max(pa["q97.5"], pb["q97.5"]) - min(pa["q2.5"], pb["q2.5"])
+        pa, pb = a.parameters[name], b.parameters[name]
+        shift.append(abs(pa.median - pb.median) / np.ptp(bounds[k]))
+        lo, hi = max(pa.q2_5, pb.q2_5), min(pa.q97_5, pb.q97_5)
+        union = max(pa.q97_5, pb.q97_5) - min(pa.q2_5, pb.q2_5)
         overlap.append(max(hi - lo, 0.0) / union)
     return np.array(shift), np.array(overlap)
 
 
-def describe(a: dict, b: dict, bounds: np.ndarray) -> str:
+def describe(a: PosteriorSummary, b: PosteriorSummary, bounds: np.ndarray) -> str:
     shift, overlap = agreement(a, b, bounds)
     return "; ".join(f"{n}: median shift {s:.2%} of the prior range, interval overlap {o:.2f}"
                      for n, s, o in zip(PARAM_NAMES, shift, overlap))
@@ -333,9 +332,9 @@ def test_the_posteriors_are_converged_and_informative(posteriors, emulator):
     narrower than the prior (otherwise any two would agree)."""
     for name, summary in posteriors.items():
         for n in PARAM_NAMES:
-            e = summary["parameters"][n]
-            assert e["r_hat"] < 1.05 and min(e["ess_bulk"], e["ess_tail"]) > 400, (name, n, e)
-            assert e["interval_share_of_prior"] < 0.2, (name, n, e)
+            e = summary.parameters[n]
+            assert e.r_hat < 1.05 and e.ess > 400, (name, n, e)
+            assert e.interval_share_of_prior < 0.2, (name, n, e)
 
 
 def test_the_vic_export_gives_the_posterior_of_our_csv_with_the_same_holes(posteriors, emulator):

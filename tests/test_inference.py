@@ -1,7 +1,6 @@
 """Inference: the potential against Pyro's model, an exact linear-Gaussian posterior, a held-out
 material of the small sweep, measurement files and their conversion."""
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
-from inference.sampling import _nuts_kernel, laplace_inverse_mass, sample_posterior
+from inference.sampling import PosteriorSummary, _nuts_kernel, laplace_inverse_mass, sample_posterior
 from inference.studies import spread_designs
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
@@ -137,8 +136,8 @@ def test_sampler_matches_an_exact_linear_gaussian_posterior():
     assert np.all(np.abs(draws.mean(0) - mean) < 4 * sd / np.sqrt(n_eff))
     np.testing.assert_allclose(draws.std(0), sd, rtol=0.1)
     summary = samples.summary()
-    assert summary["divergences"] == 0
-    assert all(e["r_hat"] < 1.01 for e in summary["parameters"].values())
+    assert summary.divergences == 0
+    assert summary.max_r_hat < 1.01
 
 
 class GaussianDensity:
@@ -206,12 +205,12 @@ class HeldOutPosteriors:
     """Posterior summaries of one held-out material seen through each observable, and the
     folder of the top-cell-average run's output files."""
 
-    surface: dict
-    top_cell_average: dict
+    surface: PosteriorSummary
+    top_cell_average: PosteriorSummary
     files: Path
 
 
-def _held_out_summary(emulator: Emulator, data: StrainDataset, out: Path) -> dict:
+def _held_out_summary(emulator: Emulator, data: StrainDataset, out: Path) -> PosteriorSummary:
     """The paper's single "mixed" observation (last frame) of the first held-out material."""
     from inference.sampling import write_outputs
 
@@ -238,9 +237,9 @@ def test_held_out_material_is_identified(held_out):
     """The paper's claim, with the paper's observable (the top skin cell's average strain): true
     mu and theta inside the 95 % interval and the intervals narrower than the prior."""
     for name in ("mu", "theta"):
-        e = held_out.top_cell_average["parameters"][name]
-        assert e["covered"], (name, e)
-        assert e["interval_share_of_prior"] < 0.8, (name, e)
+        e = held_out.top_cell_average.parameters[name]
+        assert e.covered, (name, e)
+        assert e.interval_share_of_prior < 0.8, (name, e)
     assert (held_out.files / "corner.png").exists() and (held_out.files / "posterior.nc").exists()
     import arviz as az
 
@@ -251,11 +250,11 @@ def test_surface_observable_identifies_mu_but_holds_less_of_theta(held_out):
     """What DIC sees, the skin surface, equals ln(1 + alpha) under the membrane whatever the
     material: on the small mesh mu is still identified (interval < 40 % of the prior) but the
     fibre angle much less than from the cell average (docs/paper-comparison.md)."""
-    surface, cells = held_out.surface["parameters"], held_out.top_cell_average["parameters"]
+    surface, cells = held_out.surface.parameters, held_out.top_cell_average.parameters
     for name in ("mu", "theta"):
-        assert surface[name]["covered"], (name, surface[name])
-    assert surface["mu"]["interval_share_of_prior"] < 0.4, surface["mu"]
-    assert surface["theta"]["interval_share_of_prior"] > cells["theta"]["interval_share_of_prior"] + 0.1
+        assert surface[name].covered, (name, surface[name])
+    assert surface["mu"].interval_share_of_prior < 0.4, surface["mu"]
+    assert surface["theta"].interval_share_of_prior > cells["theta"].interval_share_of_prior + 0.1
 
 
 # -- observations ------------------------------------------------------------------------------
@@ -330,8 +329,8 @@ def test_cli_infer_from_measurement(emulator, data, tmp_path, small_emulator):
     res = skinid("infer", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "post",
                  "--chains", "2", "--warmup", "100", "--draws", "100", "--quiet")
     assert res.returncode == 0, res.stderr
-    summary = json.loads((tmp_path / "post" / "summary.json").read_text())
-    assert set(summary["parameters"]) >= {"mu", "k1", "k2", "kappa", "theta"}
+    summary = PosteriorSummary.load(tmp_path / "post" / "summary.json")
+    assert set(summary.parameters) >= {"mu", "k1", "k2", "kappa", "theta"}
     assert "R-hat" in res.stdout
     bad = tmp_path / "bad.csv"
     bad.write_text(GOOD.replace("exy", "e_xy"))

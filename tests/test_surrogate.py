@@ -40,12 +40,12 @@ def test_torch_predictions_match_sklearn(emulator):
 def test_held_out_materials_are_predicted(emulator, small_dataset):
     """R² >= 0.99 for every retained PC of the noiseless held-out materials."""
     report, arrays = validate(emulator, StrainDataset.open(small_dataset))
-    for c, r in report["components"].items():
-        assert r["min_r2"] >= 0.99, (c, r["r2_per_pc"])
+    for c, r in report.components.items():
+        assert r.min_r2 >= 0.99, (c, r.r2_per_pc)
         # the emulator adds little to the PCA truncation error
-        assert r["field_rmse"] <= 1.5 * r["pca_floor_rmse"] + 1e-4
+        assert r.field_rmse <= 1.5 * r.pca_floor_rmse + 1e-4
     # standardised errors are of order one: the GP variance is calibrated (not over-confident by 10x)
-    z = (arrays["true"] - arrays["pred"]) / arrays["sd"]
+    z = (arrays.true - arrays.pred) / arrays.sd
     assert 0.2 < np.sqrt(np.mean(z**2)) < 5
 
 
