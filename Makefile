@@ -11,8 +11,11 @@ $(VENV)/.installed: pyproject.toml scripts/setup.sh
 
 setup: $(VENV)/.installed
 
+LINTED := skinfem surrogate inference tests benchmarks scripts notebooks
+
 lint: setup
-	$(VENV)/bin/ruff check skinfem surrogate inference tests benchmarks scripts notebooks
+	$(VENV)/bin/ruff check $(LINTED)
+	$(VENV)/bin/ruff format --check $(LINTED)
 
 test: setup
 	$(PY) -m pytest -q tests

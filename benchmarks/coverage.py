@@ -36,20 +36,26 @@ def main() -> None:
     parser.add_argument("--noise-sd", type=float, nargs="+", default=[0.0])
     parser.add_argument("--emulator-error", nargs="+", choices=["on", "off"], default=["on"])
     parser.add_argument("--store", type=Path, default=Path("out/coverage"))
-    parser.add_argument("--materials", type=int, nargs="+",
-                        help="only these test materials (a second process can share a study's cases)")
+    parser.add_argument(
+        "--materials",
+        type=int,
+        nargs="+",
+        help="only these test materials (a second process can share a study's cases)",
+    )
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     RESULTS.mkdir(exist_ok=True)
     for error in args.emulator_error:
-        settings = SamplerSettings(chains=2, warmup=300, draws=500, n_jobs=1, gp_variance="mode", progress=False,
-                                   emulator_error=error == "on")
+        settings = SamplerSettings(
+            chains=2, warmup=300, draws=500, n_jobs=1, gp_variance="mode", progress=False, emulator_error=error == "on"
+        )
         for sd in args.noise_sd:
             for setup in args.setups:
                 label = f"{setup}_noise{sd:g}_error-{error}"
                 start = time.perf_counter()
-                summary = coverage_study(emulator, data, setup, settings, args.store / label, noise_sd=sd,
-                                         materials=args.materials)
+                summary = coverage_study(
+                    emulator, data, setup, settings, args.store / label, noise_sd=sd, materials=args.materials
+                )
                 seconds = (time.perf_counter() - start) / summary.n_cases
                 record = {**summary.to_json(), "seconds_per_case_this_run": seconds, "emulator": str(args.emulator)}
                 (RESULTS / f"{label}.json").write_text(json.dumps(record, indent=2) + "\n")

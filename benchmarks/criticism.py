@@ -83,8 +83,9 @@ DATA_MESHES = {  # changes to the small preset
 def data_config(name: str):
     from skinfem.config import load_config
 
-    return load_config("small").with_changes(mesh=DATA_MESHES[name],
-                                             solver={"element_degree": 2, "quadrature_degree": 4})
+    return load_config("small").with_changes(
+        mesh=DATA_MESHES[name], solver={"element_degree": 2, "quadrature_degree": 4}
+    )
 
 
 def data_fields(config, case: str, points, mesh_dir, comm, path: Path) -> np.ndarray:
@@ -96,10 +97,24 @@ def data_fields(config, case: str, points, mesh_dir, comm, path: Path) -> np.nda
 
     if path.exists():
         return np.load(path)
-    mine = collective(comm, lambda: dict(zip(
-        range(comm.rank, len(DESIGNS), comm.size),
-        measured_fields(config, SkinParams(*TRUTH), DESIGNS[comm.rank::comm.size], points, hidden_effects()[case],
-                        mesh_dir, increments=2, defects=hidden_defects(case)))))
+    mine = collective(
+        comm,
+        lambda: dict(
+            zip(
+                range(comm.rank, len(DESIGNS), comm.size),
+                measured_fields(
+                    config,
+                    SkinParams(*TRUTH),
+                    DESIGNS[comm.rank :: comm.size],
+                    points,
+                    hidden_effects()[case],
+                    mesh_dir,
+                    increments=2,
+                    defects=hidden_defects(case),
+                ),
+            )
+        ),
+    )
     merged = {j: f for part in comm.allgather(mine) for j, f in part.items()}
     fields = np.stack([merged[j] for j in range(len(DESIGNS))])
     if comm.rank == 0:
@@ -135,10 +150,34 @@ def check(files, folder: Path, add: list[str], args) -> tuple[dict, float]:
 
     given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
     start = time.perf_counter()
-    code = skinid(["check", "--config", args.config, "--measurement", *map(str, files), "--out", str(folder / "report"),
-                   "--noise-length", "2", "--noise-nugget", "0.3", "--increments", "2", "--confirm", "1",
-                   "--spacing", "2", "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
-                   *(["--add", *add] if add else [])])
+    code = skinid(
+        [
+            "check",
+            "--config",
+            args.config,
+            "--measurement",
+            *map(str, files),
+            "--out",
+            str(folder / "report"),
+            "--noise-length",
+            "2",
+            "--noise-nugget",
+            "0.3",
+            "--increments",
+            "2",
+            "--confirm",
+            "1",
+            "--spacing",
+            "2",
+            "--mesh-dir",
+            str(args.mesh_dir),
+            "--refine",
+            args.refine,
+            "--resume",
+            *given,
+            *(["--add", *add] if add else []),
+        ]
+    )
     seconds = time.perf_counter() - start
     if MPI.COMM_WORLD.rank or code:
         return {}, seconds
@@ -159,8 +198,9 @@ def rounds(files, folder: Path, case: str, args) -> tuple[list[str], list[dict],
     if first not in true:
         return [first], [report], seconds
     second_report, more = check(files, folder, [first], args)
-    second = second_report and verdict_class(second_report["next_round"],
-                                             second_report["versions"][-1]["metrics"]["structured"])
+    second = second_report and verdict_class(
+        second_report["next_round"], second_report["versions"][-1]["metrics"]["structured"]
+    )
     return [first, second], [report, second_report], seconds + more
 
 
@@ -181,24 +221,35 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     effects = [c["effect"] for c in first["candidates"]]
     ranks = [effects.index(e) + 1 for e in true if e in effects]
     spot = first["hotspot"]
-    row = {"case": case, "seed": seed, "verdict": ", then ".join(verdicts),
-           "rank_of_true_effect": min(ranks) if ranks else None,
-           "rmse_baseline": first["versions"][0]["metrics"]["rmse"],
-           "added": [v["label"] for v in last["versions"][1:]],
-           "rmse_with_true_effect": last["versions"][-1]["metrics"]["rmse"] if len(last["versions"]) > 1 else None,
-           "noise_rms": first["versions"][0]["metrics"]["noise_rms"],
-           "discretisation_sigma": first["discretisation"]["sigma"],
-           "discretisation_amplitude": first["discretisation"]["amplitude"],
-           "hotspot": spot,
-           "hotspot_to_inclusion_mm": (float(np.hypot(spot["x"] - INCLUSION["centre"][0],
-                                                      spot["y"] - INCLUSION["centre"][1]))
-                                       if case == "inclusion" else None),
-           "failed_runs": sum(len(r["failed_runs"]) for r in reports), "seconds": seconds,
-           "fe_runs": sum(r["timings"][k] for r in reports
-                          for k in ("compare_fe_runs", "diagnose_fe_runs", "add_fe_runs", "next_round_fe_runs")),
-           "fe_runs_continued": first["timings"]["fe_runs_continued"], "refined_seconds": first["timings"]["refined_s"],
-           "estimates_baseline": first["versions"][0]["estimates"],
-           "estimates_with_true_effect": last["versions"][-1]["estimates"] if len(last["versions"]) > 1 else None}
+    row = {
+        "case": case,
+        "seed": seed,
+        "verdict": ", then ".join(verdicts),
+        "rank_of_true_effect": min(ranks) if ranks else None,
+        "rmse_baseline": first["versions"][0]["metrics"]["rmse"],
+        "added": [v["label"] for v in last["versions"][1:]],
+        "rmse_with_true_effect": last["versions"][-1]["metrics"]["rmse"] if len(last["versions"]) > 1 else None,
+        "noise_rms": first["versions"][0]["metrics"]["noise_rms"],
+        "discretisation_sigma": first["discretisation"]["sigma"],
+        "discretisation_amplitude": first["discretisation"]["amplitude"],
+        "hotspot": spot,
+        "hotspot_to_inclusion_mm": (
+            float(np.hypot(spot["x"] - INCLUSION["centre"][0], spot["y"] - INCLUSION["centre"][1]))
+            if case == "inclusion"
+            else None
+        ),
+        "failed_runs": sum(len(r["failed_runs"]) for r in reports),
+        "seconds": seconds,
+        "fe_runs": sum(
+            r["timings"][k]
+            for r in reports
+            for k in ("compare_fe_runs", "diagnose_fe_runs", "add_fe_runs", "next_round_fe_runs")
+        ),
+        "fe_runs_continued": first["timings"]["fe_runs_continued"],
+        "refined_seconds": first["timings"]["refined_s"],
+        "estimates_baseline": first["versions"][0]["estimates"],
+        "estimates_with_true_effect": last["versions"][-1]["estimates"] if len(last["versions"]) > 1 else None,
+    }
     (folder / "row.json").write_text(json.dumps(row, indent=2) + "\n")
     return row
 
@@ -215,10 +266,18 @@ def main() -> None:
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument("--summarise", action="store_true", help="only tabulate the finished checks")
     parser.add_argument("--data", choices=list(DATA_MESHES), default="q2", help="the data's discretisation")
-    parser.add_argument("--refine", choices=["uniform", "edge"], default="uniform",
-                        help="the check's refined mesh for its discretisation estimate")
-    parser.add_argument("--start", choices=["spread", "centre"], default="spread",
-                        help="calibration start: best of 5 spread points, or the box centre")
+    parser.add_argument(
+        "--refine",
+        choices=["uniform", "edge"],
+        default="uniform",
+        help="the check's refined mesh for its discretisation estimate",
+    )
+    parser.add_argument(
+        "--start",
+        choices=["spread", "centre"],
+        default="spread",
+        help="calibration start: best of 5 spread points, or the box centre",
+    )
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
@@ -229,22 +288,39 @@ def main() -> None:
         for case in args.cases:
             if not (args.out / f"{case}_{seed}" / "row.json").exists():
                 if case not in fields:
-                    fields[case] = data_fields(config, case, points, args.mesh_dir, comm,
-                                               args.out / f"data_{args.data}_{case}.npy")
+                    fields[case] = data_fields(
+                        config, case, points, args.mesh_dir, comm, args.out / f"data_{args.data}_{case}.npy"
+                    )
                 run_case(case, seed, fields[case], points, args, comm)
-    rows = [json.loads((args.out / f"{case}_{s}" / "row.json").read_text()) for case in args.cases
-            for s in range(args.seeds) if (args.out / f"{case}_{s}" / "row.json").exists()]
+    rows = [
+        json.loads((args.out / f"{case}_{s}" / "row.json").read_text())
+        for case in args.cases
+        for s in range(args.seeds)
+        if (args.out / f"{case}_{s}" / "row.json").exists()
+    ]
     if comm.rank == 0:
         confusion: dict[str, dict[str, int]] = {}
         for row in rows:
             confusion.setdefault(row["case"], {}).setdefault(row["verdict"], 0)
             confusion[row["case"]][row["verdict"]] += 1
-        command = (f"mpirun -n 2 python benchmarks/criticism.py --config {args.config} --cases {' '.join(args.cases)} "
-                   f"--seeds {args.seeds} --data {args.data} --refine {args.refine} --start {args.start}")
-        args.results.write_text(json.dumps({"command": command, "checked_config": args.config,
-                                       "data": f"Q2, small preset with {DATA_MESHES[args.data]}",
-                                       "noise": {"sd": NOISE["sd"].tolist(), "length_mm": 2.0, "nugget": 0.3},
-                                       "confusion": confusion, "rows": rows}, indent=2) + "\n")
+        command = (
+            f"mpirun -n 2 python benchmarks/criticism.py --config {args.config} --cases {' '.join(args.cases)} "
+            f"--seeds {args.seeds} --data {args.data} --refine {args.refine} --start {args.start}"
+        )
+        args.results.write_text(
+            json.dumps(
+                {
+                    "command": command,
+                    "checked_config": args.config,
+                    "data": f"Q2, small preset with {DATA_MESHES[args.data]}",
+                    "noise": {"sd": NOISE["sd"].tolist(), "length_mm": 2.0, "nugget": 0.3},
+                    "confusion": confusion,
+                    "rows": rows,
+                },
+                indent=2,
+            )
+            + "\n"
+        )
         for case, verdicts in confusion.items():
             print(f"{case:>17}: {verdicts}")
 

@@ -36,8 +36,16 @@ HERE = Path(__file__).resolve().parent
 PARAMS = (1.2e-3, 0.017, 11.0, 0.285, 30.0)
 BANDS = {"under the membrane (< 8 mm)": (0, 8), "edge band (8-12 mm)": (8, 12), "far field (> 12 mm)": (12, 99)}
 MESHES = [  # (degree, h_membrane, h_far, skin_layers, muscle_layers)
-    (1, 2, 6, 1, 2), (1, 2, 6, 1, 4), (1, 2, 3, 1, 2), (1, 2, 6, 2, 2), (1, 1, 3, 2, 4), (1, 2, 3, 2, 4),
-    (2, 2, 6, 1, 2), (2, 2, 4, 1, 3), (2, 2, 4, 2, 3), (2, 2, 3, 2, 4),
+    (1, 2, 6, 1, 2),
+    (1, 2, 6, 1, 4),
+    (1, 2, 3, 1, 2),
+    (1, 2, 6, 2, 2),
+    (1, 1, 3, 2, 4),
+    (1, 2, 3, 2, 4),
+    (2, 2, 6, 1, 2),
+    (2, 2, 4, 1, 3),
+    (2, 2, 4, 2, 3),
+    (2, 2, 3, 2, 4),
 ]
 
 
@@ -45,8 +53,13 @@ EDGE_SERIES = [  # (degree, h_membrane, h_far, skin_layers, muscle_layers, h_edg
     [(2, 2, 6, 2, 2, 0.0), (2, 2, 6, 2, 2, 1.0), (2, 2, 6, 2, 2, 0.5)],
     [(1, 2, 6, 2, 2, 0.0), (1, 2, 6, 2, 2, 0.5), (1, 2, 6, 2, 2, 0.25), (1, 2, 6, 4, 4, 0.25)],
 ]
-REFINEMENTS = {"base": (2, 2, 6, 2, 2), "layers doubled": (2, 2, 6, 4, 4), "skin layers doubled": (2, 2, 6, 4, 2),
-               "muscle layers doubled": (2, 2, 6, 2, 4), "in-plane halved": (2, 1, 3, 2, 2)}
+REFINEMENTS = {
+    "base": (2, 2, 6, 2, 2),
+    "layers doubled": (2, 2, 6, 4, 4),
+    "skin layers doubled": (2, 2, 6, 4, 2),
+    "muscle layers doubled": (2, 2, 6, 2, 4),
+    "in-plane halved": (2, 1, 3, 2, 2),
+}
 
 
 def label(mesh) -> str:
@@ -66,7 +79,8 @@ def measure(mesh, xy, mesh_dir, warm: bool = True, cells: bool = False):
     config = load_config("small").with_changes(
         mesh={"h_membrane": hm, "h_far": hf, "skin_layers": s, "muscle_layers": m, "h_edge": edge[0] if edge else 0.0},
         solver={"increments": 2, "element_degree": degree, "quadrature_degree": 2 * degree},
-        observable={"kind": "top_cell_average"})
+        observable={"kind": "top_cell_average"},
+    )
     model = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir)
     gauge = SurfaceStrainGauge(model.u, xy, StrainGauge(1.0))
     if warm:
@@ -86,8 +100,12 @@ def main() -> None:
     parser.add_argument("part", nargs="?", choices=["meshes", "refinements", "edge", "paper"], default="meshes")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "dic_convergence.json")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
-    parser.add_argument("--store", type=Path, default=Path("out/dic_convergence"),
-                        help="finished meshes of the paper part, kept so that a killed run resumes")
+    parser.add_argument(
+        "--store",
+        type=Path,
+        default=Path("out/dic_convergence"),
+        help="finished meshes of the paper part, kept so that a killed run resumes",
+    )
     args = parser.parse_args()
     xy = dic_points(20.0, 1.0, np.random.default_rng(0))
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
@@ -140,16 +158,25 @@ def refinements(xy, mesh_dir) -> dict:
     rows = []
     for name in list(REFINEMENTS)[1:]:
         diff = fields[name] - base
-        row = {"refinement": name, "mesh": label(REFINEMENTS[name]), "dofs": dofs[name],
-               "seconds": round(seconds[name], 1),
-               "relative_rms_change": float(np.sqrt(np.mean(diff**2) / np.mean(base**2)))}
+        row = {
+            "refinement": name,
+            "mesh": label(REFINEMENTS[name]),
+            "dofs": dofs[name],
+            "seconds": round(seconds[name], 1),
+            "relative_rms_change": float(np.sqrt(np.mean(diff**2) / np.mean(base**2))),
+        }
         for band, (lo, hi) in BANDS.items():
             sel = (ring >= lo) & (ring < hi)
             row[band] = float(np.sqrt(np.mean(diff[sel] ** 2) / np.mean(base[sel] ** 2)))
         rows.append(row)
         print(row, flush=True)
-    return {"command": "python benchmarks/dic_convergence.py refinements", "base": label(REFINEMENTS["base"]),
-            "base_seconds": round(seconds["base"], 1), "base_dofs": dofs["base"], "rows": rows}
+    return {
+        "command": "python benchmarks/dic_convergence.py refinements",
+        "base": label(REFINEMENTS["base"]),
+        "base_seconds": round(seconds["base"], 1),
+        "base_dofs": dofs["base"],
+        "rows": rows,
+    }
 
 
 PAPER = (1, 0.5, 2.8, 1, 5, 0.0)
@@ -173,8 +200,14 @@ def measure_resumable(mesh, xy, mesh_dir, store: Path):
     if not path.exists():
         field, seconds, dofs, (cell_strain, cell_xy) = measure(mesh, xy, mesh_dir, warm=False, cells=True)
         store.mkdir(parents=True, exist_ok=True)
-        np.savez(path.with_suffix(".part.npz"), field=field, seconds=seconds, dofs=dofs,
-                 cell_strain=cell_strain, cell_xy=cell_xy)
+        np.savez(
+            path.with_suffix(".part.npz"),
+            field=field,
+            seconds=seconds,
+            dofs=dofs,
+            cell_strain=cell_strain,
+            cell_xy=cell_xy,
+        )
         path.with_suffix(".part.npz").replace(path)
     with np.load(path) as f:
         return f["field"], float(f["seconds"]), int(f["dofs"]), (f["cell_strain"], f["cell_xy"])
@@ -194,14 +227,23 @@ def paper_errors(xy, mesh_dir, store: Path) -> dict:
         print(row["mesh"], {k: round(v, 4) for k, v in row["error_vs_reference"].items()}, flush=True)
     layers = []
     for previous, mesh in zip(PAPER_SKIN_LAYERS, PAPER_SKIN_LAYERS[1:]):
-        layers.append({"from": label(previous), "to": label(mesh),
-                       "surface_strain": band_changes(surface[mesh], surface[previous], xy),
-                       "top_cell_average": band_changes(cells[mesh][0], cells[previous][0], cells[mesh][1])})
+        layers.append(
+            {
+                "from": label(previous),
+                "to": label(mesh),
+                "surface_strain": band_changes(surface[mesh], surface[previous], xy),
+                "top_cell_average": band_changes(cells[mesh][0], cells[previous][0], cells[mesh][1]),
+            }
+        )
         print(layers[-1], flush=True)
-    return {"command": "python benchmarks/dic_convergence.py paper",
-            "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in PAPER_REFERENCE),
-            "observed_order": order, "field_rms": float(np.sqrt(np.mean(reference**2))),
-            "meshes": rows, "skin_layers": layers}
+    return {
+        "command": "python benchmarks/dic_convergence.py paper",
+        "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in PAPER_REFERENCE),
+        "observed_order": order,
+        "field_rms": float(np.sqrt(np.mean(reference**2))),
+        "meshes": rows,
+        "skin_layers": layers,
+    }
 
 
 def meshes(xy, mesh_dir) -> dict:
@@ -221,10 +263,19 @@ def meshes(xy, mesh_dir) -> dict:
             sel = (ring >= lo) & (ring < hi)
             row[name] = float(np.sqrt(np.mean(diff[sel] ** 2) / np.mean(reference[sel] ** 2)))
     for row in rows:
-        print(f"{row['mesh']:>20}: {row['relative_rms_vs_finest']:.3f} "
-              + " ".join(f"{row[b]:.3f}" for b in BANDS) + f"  {row['seconds']} s, {row['dofs']} dofs")
-    return {"command": "python benchmarks/dic_convergence.py", "points": len(xy), "window_mm": 1.0,
-            "reference": label(MESHES[-1]), "field_rms": float(np.sqrt(np.mean(reference**2))), "meshes": rows}
+        print(
+            f"{row['mesh']:>20}: {row['relative_rms_vs_finest']:.3f} "
+            + " ".join(f"{row[b]:.3f}" for b in BANDS)
+            + f"  {row['seconds']} s, {row['dofs']} dofs"
+        )
+    return {
+        "command": "python benchmarks/dic_convergence.py",
+        "points": len(xy),
+        "window_mm": 1.0,
+        "reference": label(MESHES[-1]),
+        "field_rms": float(np.sqrt(np.mean(reference**2))),
+        "meshes": rows,
+    }
 
 
 if __name__ == "__main__":

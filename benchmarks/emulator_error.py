@@ -54,8 +54,10 @@ def main() -> None:
         mean, var = emulator.predict_weights(torch.as_tensor(rows.inputs))
     error, var = weights - mean.numpy(), var.numpy()
     tau2 = np.array(excess.variance) * excess.load_scale(rows.inputs[:, 5:])[:, None] ** 2
-    results["fresh_materials"] = {"gp_only": per_frame_z_rms(error, var, rows.index[:, 2]),
-                                  "with_excess": per_frame_z_rms(error, var + tau2, rows.index[:, 2])}
+    results["fresh_materials"] = {
+        "gp_only": per_frame_z_rms(error, var, rows.index[:, 2]),
+        "with_excess": per_frame_z_rms(error, var + tau2, rows.index[:, 2]),
+    }
 
     train_rows = TrainingRows.from_dataset(train, np.flatnonzero(train.split == 0))
     x = emulator.scale(train_rows.inputs)
@@ -77,8 +79,9 @@ def main() -> None:
     for name, fit in (("cv_kernels_kept", fixed_kernels), ("cv_refitted", refitted)):
         error, variance = cross_validated_errors(fit, x, w, train_rows.index[:, 0], subset)
         results[name] = per_frame_z_rms(error, variance, train_rows.index[:, 2])
-        results[name + "_excess"] = cross_validated_excess(fit, x, w, train_rows.index[:, 0], train_rows.inputs[:, 5:],
-                                                           subset).to_json()
+        results[name + "_excess"] = cross_validated_excess(
+            fit, x, w, train_rows.index[:, 0], train_rows.inputs[:, 5:], subset
+        ).to_json()
     (HERE / "results" / "emulator_error.json").write_text(json.dumps(results, indent=2) + "\n")
     for key in ("fresh_materials", "cv_kernels_kept", "cv_refitted"):
         print(key, json.dumps(results[key])[:300])

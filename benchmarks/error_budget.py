@@ -29,8 +29,11 @@ TERMS = ("noise", "gp", "held_out_excess", "truncation")
 TERM_LABELS = ("measurement noise", "GP variance", "held-out excess", "PCA truncation")
 
 
-PANELS = {"single, full field": ("single", None), "single, DIC window": ("single", 18.0),
-          "3 membranes, DIC window": ("membranes", 18.0)}
+PANELS = {
+    "single, full field": ("single", None),
+    "single, DIC window": ("single", 18.0),
+    "3 membranes, DIC window": ("membranes", 18.0),
+}
 
 
 def dic_window(observation, xy: np.ndarray, half: float, holes: float, rng) -> None:
@@ -69,8 +72,9 @@ def plot(noise_sd: np.ndarray, shares: dict[str, dict[str, np.ndarray]], path: P
 
     plt = pyplot()
     n_rows, n_cols = len(shares), len(PANELS)
-    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.2 * n_cols, 3.2 * n_rows), sharex=True, sharey=True,
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        n_rows, n_cols, figsize=(4.2 * n_cols, 3.2 * n_rows), sharex=True, sharey=True, squeeze=False
+    )
     colours = ("#4c72b0", "#dd8452", "#c44e52", "#8c8c8c")
     for row, (label, by_panel) in zip(axes, shares.items()):
         for ax, (panel, s) in zip(row, by_panel.items()):
@@ -114,11 +118,15 @@ def main() -> None:
             shares[label][panel] = s
             print(f"{label}, {panel}: the noise holds half the variance from sd {crossings[label][panel]}")
     args.results.mkdir(parents=True, exist_ok=True)
-    result = {"emulators": args.emulator, "data": str(args.data), "terms": list(TERMS),
-              "noise_sd": noise_sd.tolist(),
-              "shares": {k: {p: v.round(4).tolist() for p, v in by.items()} for k, by in shares.items()},
-              "noise_holds_half_from_sd": crossings,
-              "cases": {panel: len(cases_of(data, setup)) for panel, (setup, _) in PANELS.items()}}
+    result = {
+        "emulators": args.emulator,
+        "data": str(args.data),
+        "terms": list(TERMS),
+        "noise_sd": noise_sd.tolist(),
+        "shares": {k: {p: v.round(4).tolist() for p, v in by.items()} for k, by in shares.items()},
+        "noise_holds_half_from_sd": crossings,
+        "cases": {panel: len(cases_of(data, setup)) for panel, (setup, _) in PANELS.items()},
+    }
     (args.results / "error_budget.json").write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {plot(noise_sd, shares, args.results / 'error_budget.png')}")
 

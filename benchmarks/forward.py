@@ -50,8 +50,7 @@ def merge_results(key: str, value, results: Path = RESULTS) -> None:
     results.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, petsc: list[str],
-            repeat: int) -> None:
+def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, petsc: list[str], repeat: int) -> None:
     """``repeat`` simulations on the ranks of COMM_WORLD; rank 0 writes timings to ``out``
     (median wall time; breakdown and counts per simulation).
 
@@ -120,15 +119,35 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, p
         )
 
 
-def timing(config: str, ranks: list[int], mesh_dir: str, refactor_krylov: list[int], petsc: list[str],
-           label: str, repeat: int, results: Path) -> None:
+def timing(
+    config: str,
+    ranks: list[int],
+    mesh_dir: str,
+    refactor_krylov: list[int],
+    petsc: list[str],
+    label: str,
+    repeat: int,
+    results: Path,
+) -> None:
     mpirun = Path(sys.executable).with_name("mpirun")
     name = Path(config).stem
     for k in refactor_krylov:
         for n in ranks:
             out = Path(f"/tmp/skinid-forward-{name}-{n}-{k}.json")
-            cmd = [sys.executable, __file__, "run-one", config, str(out), "--mesh-dir", mesh_dir,
-                   "--refactor-krylov", str(k), "--repeat", str(repeat), *(f"--petsc={p}" for p in petsc)]
+            cmd = [
+                sys.executable,
+                __file__,
+                "run-one",
+                config,
+                str(out),
+                "--mesh-dir",
+                mesh_dir,
+                "--refactor-krylov",
+                str(k),
+                "--repeat",
+                str(repeat),
+                *(f"--petsc={p}" for p in petsc),
+            ]
             if n > 1:
                 cmd = [str(mpirun), "-n", str(n), *cmd]
             env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -177,9 +196,7 @@ def convergence(mesh_dir: str) -> None:
         ("Q2 h=2", dict(h_membrane=2.0, h_far=8.0), 2, 4),
     ]
     for label, mesh, degree, qdeg in cases:
-        cfg = Config(name="conv").with_changes(
-            mesh=mesh, solver={"element_degree": degree, "quadrature_degree": qdeg}
-        )
+        cfg = Config(name="conv").with_changes(mesh=mesh, solver={"element_degree": degree, "quadrature_degree": qdeg})
         t0 = time.perf_counter()
         model = SkinModel(cfg, MPI.COMM_WORLD, mesh_dir=mesh_dir)
         frames = model.simulate(SkinParams(**PARAMS), Design(**DESIGN))
@@ -208,17 +225,18 @@ def convergence(mesh_dir: str) -> None:
         ("Q1 h=2", "Q2 h=2"),
         ("Q2 h=2", "Q1 h=0.25"),
     ]
-    table = [
-        {"coarse": c, "fine": f, "relative_l2_change_exx_eyy": rel_l2(c, f)} for c, f in pairs
-    ]
+    table = [{"coarse": c, "fine": f, "relative_l2_change_exx_eyy": rel_l2(c, f)} for c, f in pairs]
     keep = ("dofs", "h_far", "skin_cells", "seconds")
-    meta = {k: {**{q: v[q] for q in keep}, "max_abs_exx_eyy": np.abs(v["strain"][:, :2]).max(0).tolist()}
-            for k, v in runs.items()}
+    meta = {
+        k: {**{q: v[q] for q in keep}, "max_abs_exx_eyy": np.abs(v["strain"][:, :2]).max(0).tolist()}
+        for k, v in runs.items()
+    }
     for row in table:
         print(f"{row['coarse']:>18} vs {row['fine']:<18} {row['relative_l2_change_exx_eyy']:.4f}")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    merge_results("convergence", {"params": PARAMS, "design": DESIGN, "runs": meta, "table": table,
-                                  "peak_memory_mb": peak_mb})
+    merge_results(
+        "convergence", {"params": PARAMS, "design": DESIGN, "runs": meta, "table": table, "peak_memory_mb": peak_mb}
+    )
 
 
 def main() -> None:
@@ -229,13 +247,26 @@ def main() -> None:
     parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--mesh-dir", default="meshes")
     parser.add_argument("--refactor-krylov", type=int, nargs="+", default=[10, 0])
-    parser.add_argument("--petsc", action="append", default=[], metavar="KEY=VALUE",
-                        help="extra PETSc option of the model's solver (repeatable), e.g. pc_type=lu")
+    parser.add_argument(
+        "--petsc",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra PETSc option of the model's solver (repeatable), e.g. pc_type=lu",
+    )
     parser.add_argument("--label", default="", help="suffix of the result keys, e.g. _lu")
-    parser.add_argument("--repeat", type=int, default=3,
-                        help="simulations per timing run (the machine's speed varies; the median is kept)")
-    parser.add_argument("--results", type=Path, default=RESULTS,
-                        help="JSON file the timings are merged into (levers: results/forward_levers.json)")
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        help="simulations per timing run (the machine's speed varies; the median is kept)",
+    )
+    parser.add_argument(
+        "--results",
+        type=Path,
+        default=RESULTS,
+        help="JSON file the timings are merged into (levers: results/forward_levers.json)",
+    )
     a = parser.parse_args()
     if a.repeat < 1:
         parser.error(f"--repeat must be >= 1, got {a.repeat}")

@@ -32,8 +32,9 @@ def make_paper_posterior(emulator, observed):
 
     class SklearnLikelihood(SkinPosterior):
         def log_likelihood(self, params, sigma):
-            x = np.concatenate([np.repeat(params.detach().numpy()[None], len(self.design_inputs), 0),
-                                self.design_inputs.numpy()], 1)
+            x = np.concatenate(
+                [np.repeat(params.detach().numpy()[None], len(self.design_inputs), 0), self.design_inputs.numpy()], 1
+            )
             unit = self.emulator.scale(x)
             preds = [gp.predict(unit, return_std=True) for gp in self.emulator.sklearn_gps]
             mean = np.stack([p[0] for p in preds], 1)
@@ -58,25 +59,39 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--paper-iterations", type=int, default=2000)
     parser.add_argument("--skip-paper", action="store_true")
-    parser.add_argument("--variants", nargs="+", default=["exact", "mode"], choices=["exact", "mode"],
-                        help="GP-variance treatments to time")
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=["exact", "mode"],
+        choices=["exact", "mode"],
+        help="GP-variance treatments to time",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     material = int(np.flatnonzero(data.split)[0])
     mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
     observed = ObservedWeights.project(emulator, from_dataset(data, material, [mixed], [-1]))
-    results = {"emulator": str(args.emulator), "n_gp_rows": emulator.provenance.n_gp_rows,
-               "n_gps": int(sum(emulator.n_weights.values())), "material": material}
+    results = {
+        "emulator": str(args.emulator),
+        "n_gp_rows": emulator.provenance.n_gp_rows,
+        "n_gps": int(sum(emulator.n_weights.values())),
+        "material": material,
+    }
     for gp_variance in args.variants:
         post = SkinPosterior(emulator, observed, gp_variance=gp_variance)
         s = sample_posterior(post, chains=4, warmup=500, draws=1000, seed=0, n_jobs=2, progress=False)
         summary = s.summary()
         results[f"skinid_gp_variance_{gp_variance}"] = {
-            "chains": 4, "warmup": 500, "draws": 1000, "seconds": s.seconds,
+            "chains": 4,
+            "warmup": 500,
+            "draws": 1000,
+            "seconds": s.seconds,
             "max_r_hat": summary.max_r_hat,
-            "min_ess": summary.min_ess, "ess_per_second": summary.min_ess / s.seconds,
-            "divergences": summary.divergences, "gp_variance_over_posterior": s.gp_variance_spread,
+            "min_ess": summary.min_ess,
+            "ess_per_second": summary.min_ess / s.seconds,
+            "divergences": summary.divergences,
+            "gp_variance_over_posterior": s.gp_variance_spread,
             "medians": {n: e.median for n, e in summary.parameters.items()},
         }
         print(gp_variance, json.dumps(results[f"skinid_gp_variance_{gp_variance}"]), flush=True)
@@ -86,9 +101,13 @@ def main() -> None:
         s = sample_posterior(post, chains=1, warmup=n, draws=n, seed=0, n_jobs=1, progress=False)
         summary = s.summary()
         results["paper_configuration"] = {
-            "chains": 1, "warmup": n, "draws": n, "seconds": s.seconds,
+            "chains": 1,
+            "warmup": n,
+            "draws": n,
+            "seconds": s.seconds,
             "seconds_extrapolated_to_10000_plus_10000": s.seconds * 10000 / n,
-            "min_ess": summary.min_ess, "ess_per_second": summary.min_ess / s.seconds,
+            "min_ess": summary.min_ess,
+            "ess_per_second": summary.min_ess / s.seconds,
             "medians": {k: e.median for k, e in summary.parameters.items()},
         }
         print("paper", json.dumps(results["paper_configuration"]), flush=True)

@@ -84,8 +84,13 @@ def timed_solve(A, b, options: dict, near_nullspace=None) -> dict:
     r = b.duplicate()
     A.mult(x, r)
     r.axpy(-1.0, b)
-    return {"setup_s": round(setup, 3), "solve_s": round(solve, 3), "iterations": ksp.getIterationNumber(),
-            "converged": ksp.getConvergedReason() > 0, "relative_residual": r.norm() / b.norm()}
+    return {
+        "setup_s": round(setup, 3),
+        "solve_s": round(solve, 3),
+        "iterations": ksp.getIterationNumber(),
+        "converged": ksp.getConvergedReason() > 0,
+        "relative_residual": r.norm() / b.norm(),
+    }
 
 
 def probe(config, mesh_dir) -> dict:
@@ -97,14 +102,26 @@ def probe(config, mesh_dir) -> dict:
     A = tangent(model)
     b = A.createVecLeft()
     b.setArray(np.random.default_rng(0).standard_normal(b.getLocalSize()))
-    row = {"dofs": model.n_dofs, "simulation_s": round(frames.seconds, 1),
-           "mumps lu": timed_solve(A, b, {"ksp_type": "preonly", "pc_type": "lu",
-                                          "pc_factor_mat_solver_type": "mumps"})}
+    row = {
+        "dofs": model.n_dofs,
+        "simulation_s": round(frames.seconds, 1),
+        "mumps lu": timed_solve(A, b, {"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}),
+    }
     modes = rigid_body_modes(model.V)
     for name, ksp_type in KRYLOV.items():
-        row[name] = timed_solve(A, b, {"ksp_type": ksp_type, "ksp_rtol": 1e-8, "ksp_max_it": 2000,
-                                       "ksp_norm_type": "unpreconditioned",
-                                       "pc_type": "gamg", "pc_gamg_threshold": 0.01}, modes)
+        row[name] = timed_solve(
+            A,
+            b,
+            {
+                "ksp_type": ksp_type,
+                "ksp_rtol": 1e-8,
+                "ksp_max_it": 2000,
+                "ksp_norm_type": "unpreconditioned",
+                "pc_type": "gamg",
+                "pc_gamg_threshold": 0.01,
+            },
+            modes,
+        )
     return row
 
 

@@ -46,10 +46,11 @@ def grid_subset(xy: np.ndarray, every: int) -> np.ndarray:
     """
     columns = [np.unique(np.round(xy[:, k], 6)) for k in range(2)]
     if len(columns[0]) * len(columns[1]) != len(xy):
-        raise ValueError(f"the {len(xy)} cells are not a tensor-product grid "
-                         f"({len(columns[0])} x {len(columns[1])} distinct centres)")
-    kept = [c[np.unique(np.round(np.linspace(0, len(c) - 1, -(-len(c) // every))).astype(int))]
-            for c in columns]
+        raise ValueError(
+            f"the {len(xy)} cells are not a tensor-product grid "
+            f"({len(columns[0])} x {len(columns[1])} distinct centres)"
+        )
+    kept = [c[np.unique(np.round(np.linspace(0, len(c) - 1, -(-len(c) // every))).astype(int))] for c in columns]
     on_x = np.isin(np.round(xy[:, 0], 6), kept[0])
     on_y = np.isin(np.round(xy[:, 1], 6), kept[1])
     return np.flatnonzero(on_x & on_y)
@@ -64,16 +65,27 @@ def write_subset(data_path: Path, cells: np.ndarray, out: Path) -> Path:
     n_mat, n_des, _, _ = data.shape
 
     def write(tmp: Path) -> None:
-        create_dataset(tmp, data.config, data.params, data.designs, data.t, data.xy[cells],
-                       data.volume[cells], data.split, f"{data.mesh_sha256}:cells{len(cells)}",
-                       bounds=np.stack([data.lower, data.upper], 1), versions=data.versions)
+        create_dataset(
+            tmp,
+            data.config,
+            data.params,
+            data.designs,
+            data.t,
+            data.xy[cells],
+            data.volume[cells],
+            data.split,
+            f"{data.mesh_sha256}:cells{len(cells)}",
+            bounds=np.stack([data.lower, data.upper], 1),
+            versions=data.versions,
+        )
         for i in range(n_mat):
             block = data.strain(i)[:, :, cells]
             for j in range(n_des):
                 status = int(data.status[i, j])
                 if status == STATUS_OK:
-                    write_simulation(tmp, i, j, block[j], status, "", int(data.newton_iterations[i, j]),
-                                     float(data.seconds[i, j]))
+                    write_simulation(
+                        tmp, i, j, block[j], status, "", int(data.newton_iterations[i, j]), float(data.seconds[i, j])
+                    )
                 elif status != 0:
                     write_simulation(tmp, i, j, None, status, data.messages[i, j])
 
@@ -122,13 +134,18 @@ class StudyRun:
 def side_by_side(runs: list[StudyRun]) -> str:
     """Markdown table: per case, the identified parameters and each run's width / coverage."""
     cases = list(dict.fromkeys(c for run in runs for c in run.results))
-    lines = ["| case | run | " + " | ".join(SYMBOLS[n] for n in PARAMS) + " | identified |",
-             "|---|---|" + "---|" * (len(PARAMS) + 1)]
+    lines = [
+        "| case | run | " + " | ".join(SYMBOLS[n] for n in PARAMS) + " | identified |",
+        "|---|---|" + "---|" * (len(PARAMS) + 1),
+    ]
     for case in cases:
         for run in runs:
             if case in run.results:
-                lines.append(f"| {case} | {run.label} | " + " | ".join(run.cell(case, n) for n in PARAMS)
-                             + f" | {run.identified(case)} |")
+                lines.append(
+                    f"| {case} | {run.label} | "
+                    + " | ".join(run.cell(case, n) for n in PARAMS)
+                    + f" | {run.identified(case)} |"
+                )
     return "\n".join(lines)
 
 
@@ -157,12 +174,16 @@ def main() -> None:
     sources = {}
     for run in runs:
         data = next(iter(run.results.values())).get("data")
-        sources[run.label] = {"folder": str(run.folder), "data": data,
-                              "data_sha256": sha256(Path(data)) if data and Path(data).is_file() else None}
+        sources[run.label] = {
+            "folder": str(run.folder),
+            "data": data,
+            "data_sha256": sha256(Path(data)) if data and Path(data).is_file() else None,
+        }
     table = side_by_side(runs)
     (args.results / "side_by_side.md").write_text(
         "Median width of the 95 % interval as a share of the prior range / coverage of the truth over "
-        "the test materials (last frame of the mixed design).\n\n" + table + "\n")
+        "the test materials (last frame of the mixed design).\n\n" + table + "\n"
+    )
     (args.results / "sources.json").write_text(json.dumps(sources, indent=2) + "\n")
     print(table)
 

@@ -30,8 +30,13 @@ from mpi4py import MPI
 HERE = Path(__file__).resolve().parent
 CALIBRATED = (1.33e-3, 0.0183, 8.38, 0.280, 29.8)  # the quadratic check's baseline (criticism_q2.json)
 DESIGNS = [(0.05, 0.05), (0.05, -0.05)]
-LAYERS = {"all": ("skin_layers", "muscle_layers", "membrane_layers"), "but-skin": ("muscle_layers", "membrane_layers"),
-          "muscle": ("muscle_layers",), "membrane": ("membrane_layers",), "none": ()}
+LAYERS = {
+    "all": ("skin_layers", "muscle_layers", "membrane_layers"),
+    "but-skin": ("muscle_layers", "membrane_layers"),
+    "muscle": ("muscle_layers",),
+    "membrane": ("membrane_layers",),
+    "none": (),
+}
 
 
 def variant_config(config, variant: str):
@@ -41,7 +46,8 @@ def variant_config(config, variant: str):
 
     m = config.mesh
     return refined_config(config, "edge").with_changes(
-        mesh={name: (2 if name in LAYERS[variant] else 1) * getattr(m, name) for name in LAYERS["all"]})
+        mesh={name: (2 if name in LAYERS[variant] else 1) * getattr(m, name) for name in LAYERS["all"]}
+    )
 
 
 def main() -> None:
@@ -73,14 +79,21 @@ def main() -> None:
         fine = FEForward(variant_config(config, variant), observations, bounds, args.mesh_dir, 2, comm)
         fine.continue_from(forward)
         newton = []  # (seconds since start, Newton iteration, residual norm) on this rank
-        fine.model.problem.solver.setMonitor(lambda snes, its, norm: newton.append(
-            (round(time.perf_counter() - start, 1), its, float(norm))))
+        fine.model.problem.solver.setMonitor(
+            lambda snes, its, norm: newton.append((round(time.perf_counter() - start, 1), its, float(norm)))
+        )
         start = time.perf_counter()
         refined = fine(x)
         seconds = time.perf_counter() - start
-        row = {"layers doubled": variant, "dofs": fine.model.n_dofs, "seconds": round(seconds, 1),
-               "continued": fine.continued, "runs": fine.runs, "converged": refined is not None,
-               "newton_per_rank": comm.gather(newton)}
+        row = {
+            "layers doubled": variant,
+            "dofs": fine.model.n_dofs,
+            "seconds": round(seconds, 1),
+            "continued": fine.continued,
+            "runs": fine.runs,
+            "converged": refined is not None,
+            "newton_per_rank": comm.gather(newton),
+        }
         if refined is not None:
             shifts[variant] = refined - field
             row["shift_relative_rms"] = float(np.sqrt(np.mean(shifts[variant] ** 2)) / rms)
@@ -91,13 +104,25 @@ def main() -> None:
     for row in rows:
         variant = row["layers doubled"]
         if "all" in shifts and variant in shifts and variant != "all":
-            row["shift_change_from_all"] = float(np.linalg.norm(shifts[variant] - shifts["all"])
-                                                 / np.linalg.norm(shifts["all"]))
+            row["shift_change_from_all"] = float(
+                np.linalg.norm(shifts[variant] - shifts["all"]) / np.linalg.norm(shifts["all"])
+            )
     if comm.rank == 0:
         command = f"mpirun -n {comm.size} python benchmarks/refined_estimate.py --variants {' '.join(args.variants)}"
-        args.out.write_text(json.dumps({"command": command, "config": args.config, "check_dofs": forward.model.n_dofs,
-                                        "check_seconds": round(check_seconds, 1), "field_rms": rms,
-                                        "variants": rows}, indent=2) + "\n")
+        args.out.write_text(
+            json.dumps(
+                {
+                    "command": command,
+                    "config": args.config,
+                    "check_dofs": forward.model.n_dofs,
+                    "check_seconds": round(check_seconds, 1),
+                    "field_rms": rms,
+                    "variants": rows,
+                },
+                indent=2,
+            )
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

@@ -32,8 +32,12 @@ def cases(config) -> list[tuple[str, np.ndarray, tuple[float, float]]]:
     box = config.sweep.box
     low, high = box[:, 0], box[:, 1]
     centre = box.mean(axis=1)
-    corners = {"low": low, "high": high, "mu low, k1 k2 high": np.r_[low[0], high[1:3], centre[3], low[4]],
-               "mu high, k1 k2 low": np.r_[high[0], low[1:3], centre[3], high[4]]}
+    corners = {
+        "low": low,
+        "high": high,
+        "mu low, k1 k2 high": np.r_[low[0], high[1:3], centre[3], low[4]],
+        "mu high, k1 k2 low": np.r_[high[0], low[1:3], centre[3], high[4]],
+    }
     rows = [(f"centre, design {tuple(d)}", centre, tuple(d)) for d in config.sweep.designs]
     return rows + [(f"{name}, design {MIXED}", p, MIXED) for name, p in corners.items()]
 
@@ -53,20 +57,29 @@ def main() -> None:
     result.update(command=f"python benchmarks/rigid_limit.py --config {args.config}", config=config.name)
     rows = result.setdefault("rows", [])
     done = {row["case"] for row in rows}
-    models = {kind: SkinModel(config.with_changes(membrane={"model": kind}), MPI.COMM_SELF, mesh_dir=args.mesh_dir)
-              for kind in ("elastic", "rigid")}
+    models = {
+        kind: SkinModel(config.with_changes(membrane={"model": kind}), MPI.COMM_SELF, mesh_dir=args.mesh_dir)
+        for kind in ("elastic", "rigid")
+    }
     result["dofs"] = {kind: model.n_dofs for kind, model in models.items()}
     for name, params, design in cases(config):
         if name in done:
             continue
-        frames = {kind: model.simulate(SkinParams.from_array(params), Design(*design))
-                  for kind, model in models.items()}
+        frames = {
+            kind: model.simulate(SkinParams.from_array(params), Design(*design)) for kind, model in models.items()
+        }
         elastic, rigid = frames["elastic"], frames["rigid"]
-        rows.append({"case": name, "params": params.tolist(), "design": list(design),
-                     "difference": band_changes(rigid.strain[-1], elastic.strain[-1], elastic.xy),
-                     "max_abs_strain": {k: float(np.abs(f.strain[-1]).max()) for k, f in frames.items()},
-                     "seconds": {k: round(f.seconds, 2) for k, f in frames.items()},
-                     "newton_iterations": {k: sum(f.newton_iterations) for k, f in frames.items()}})
+        rows.append(
+            {
+                "case": name,
+                "params": params.tolist(),
+                "design": list(design),
+                "difference": band_changes(rigid.strain[-1], elastic.strain[-1], elastic.xy),
+                "max_abs_strain": {k: float(np.abs(f.strain[-1]).max()) for k, f in frames.items()},
+                "seconds": {k: round(f.seconds, 2) for k, f in frames.items()},
+                "newton_iterations": {k: sum(f.newton_iterations) for k, f in frames.items()},
+            }
+        )
         print(rows[-1], flush=True)
         args.out.write_text(json.dumps(result, indent=1) + "\n")
 

@@ -32,8 +32,12 @@ def time_prediction(emulator, n: int = 1000, repeats: int = 5, threads: int = 2)
     x = torch.as_tensor(model_inputs(params, [0.05, -0.05], 1.0))
     with torch.no_grad():
         best_var = min(_timed(lambda: emulator.predict_weights(x, return_var=True)) for _ in range(repeats))
-    return {"batch": n, "fields_mean_ms": 1e3 * best_fields, "weights_mean_and_variance_ms": 1e3 * best_var,
-            "torch_threads": torch.get_num_threads()}
+    return {
+        "batch": n,
+        "fields_mean_ms": 1e3 * best_fields,
+        "weights_mean_and_variance_ms": 1e3 * best_var,
+        "torch_threads": torch.get_num_threads(),
+    }
 
 
 def _timed(fn) -> float:
@@ -80,8 +84,9 @@ def main() -> None:
             "n_gp_rows": emulator.provenance.n_gp_rows,
             "n_training_rows": emulator.provenance.n_training_rows,
             "n_components": emulator.n_weights,
-            "explained_variance_at_M": {c: float(np.cumsum(p.explained_variance_ratio_)[p.n_components_ - 1])
-                                        for c, p in emulator.pcas.items()},
+            "explained_variance_at_M": {
+                c: float(np.cumsum(p.explained_variance_ratio_)[p.n_components_ - 1]) for c, p in emulator.pcas.items()
+            },
             "fit_seconds": fit_seconds,
             "validation": report.to_json()["components"],
             "prediction": time_prediction(emulator),

@@ -28,8 +28,19 @@ def run_layout(config: str, ranks: int, per_sim: int, mesh_dir: str) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "bench.h5"
-        cmd = [str(BIN / "skinid"), "sweep", "--config", config, "--out", str(out),
-               "--ranks-per-sim", str(per_sim), "--mesh-dir", mesh_dir, "--quiet"]
+        cmd = [
+            str(BIN / "skinid"),
+            "sweep",
+            "--config",
+            config,
+            "--out",
+            str(out),
+            "--ranks-per-sim",
+            str(per_sim),
+            "--mesh-dir",
+            mesh_dir,
+            "--quiet",
+        ]
         if ranks > 1:
             cmd = [str(BIN / "mpirun"), "-n", str(ranks), *cmd]
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -60,9 +71,7 @@ def projections() -> dict:
         "simulations": n_sims,
         "paper_hours_2_cores_two_groups_of_1": n_sims * paper_1 / 2 / 3600,
         "paper_hours_2_cores_one_group_of_2": n_sims * paper_2 / 3600,
-        "paper_hours_per_core_count": {
-            str(cores): n_sims * paper_1 / cores / 3600 for cores in (2, 16, 64, 256)
-        },
+        "paper_hours_per_core_count": {str(cores): n_sims * paper_1 / cores / 3600 for cores in (2, 16, 64, 256)},
         "study_hours_1_core": n_sims * study_1 / 3600,
         "note": "groups of 1 rank scale linearly while each group's memory (1.5 GB paper mesh) fits",
     }

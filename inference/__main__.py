@@ -20,12 +20,20 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     p.add_argument("--draws", type=int, default=1000, help="draws per chain after the warm-up")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--jobs", type=int, default=2, help="chains run in parallel (processes)")
-    p.add_argument("--gp-variance", choices=["exact", "mode"], default="mode",
-                   help="GP covariance fixed at the posterior mode (fast; coverage measured on it) or "
-                        "evaluated at every step (exact)")
-    p.add_argument("--emulator-error", choices=["on", "off"], default="on",
-                   help="carry the emulator's held-out error and PCA truncation in the likelihood (on), "
-                        "or the GP variance only (off)")
+    p.add_argument(
+        "--gp-variance",
+        choices=["exact", "mode"],
+        default="mode",
+        help="GP covariance fixed at the posterior mode (fast; coverage measured on it) or "
+        "evaluated at every step (exact)",
+    )
+    p.add_argument(
+        "--emulator-error",
+        choices=["on", "off"],
+        default="on",
+        help="carry the emulator's held-out error and PCA truncation in the likelihood (on), "
+        "or the GP variance only (off)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -62,8 +70,9 @@ def design_indices(text: str | None, designs: np.ndarray, path: Path, option: st
     try:
         values = np.array([float(v) for v in tokens])
     except ValueError:
-        raise ValueError(f"{option} takes design indices ('2', '0,2,4') or eigen-strain pairs "
-                         f"('0.05,-0.05'), got '{text}'") from None
+        raise ValueError(
+            f"{option} takes design indices ('2', '0,2,4') or eigen-strain pairs ('0.05,-0.05'), got '{text}'"
+        ) from None
     if len(values) == 0 or len(values) % 2:
         raise ValueError(f"{option} {text}: eigen-strains come in pairs alpha11,alpha22 (e.g. 0.05,-0.05)")
     indices = []
@@ -94,8 +103,12 @@ def _check_indices(option: str, values: list[int] | None, size: int, path: Path,
 
 def check_sampler(args) -> None:
     """Refuse sampler options that cannot give a posterior (before any input is read)."""
-    for option, value, least in (("--chains", args.chains, 1), ("--draws", args.draws, 1),
-                                 ("--warmup", args.warmup, 0), ("--jobs", args.jobs, 1)):
+    for option, value, least in (
+        ("--chains", args.chains, 1),
+        ("--draws", args.draws, 1),
+        ("--warmup", args.warmup, 0),
+        ("--jobs", args.jobs, 1),
+    ):
         if value < least:
             raise ValueError(f"{option} must be >= {least}, got {value}")
 
@@ -104,9 +117,11 @@ def check_same_mesh(data, emulator) -> None:
     """Refuse a dataset simulated on another mesh than the emulator's training data (the PC basis
     belongs to that mesh's cells, even when the cell count is the same)."""
     if data.mesh_sha256 != emulator.provenance.mesh_sha256 or data.xy.shape != emulator.xy.shape:
-        raise ValueError(f"'{data.path}' was simulated on another mesh than the emulator's dataset "
-                         f"'{emulator.provenance.dataset}' (mesh sha256 {data.mesh_sha256[:12]}... vs "
-                         f"{emulator.provenance.mesh_sha256[:12]}...)")
+        raise ValueError(
+            f"'{data.path}' was simulated on another mesh than the emulator's dataset "
+            f"'{emulator.provenance.dataset}' (mesh sha256 {data.mesh_sha256[:12]}... vs "
+            f"{emulator.provenance.mesh_sha256[:12]}...)"
+        )
 
 
 def check_strain_scale(m, membrane_half: float) -> None:
@@ -116,8 +131,10 @@ def check_strain_scale(m, membrane_half: float) -> None:
 
     ratio = assess_plausibility(m.xy, m.strain, m.alpha, m.t, membrane_half).ratio
     if ratio > RATIO_RANGE[1]:
-        raise MeasurementError(f"{m.path}: the mean strain under the membrane is {ratio:.3g}x the design's "
-                               "ln(1 + t·alpha): strains in percent? a measurement file holds fractions")
+        raise MeasurementError(
+            f"{m.path}: the mean strain under the membrane is {ratio:.3g}x the design's "
+            "ln(1 + t·alpha): strains in percent? a measurement file holds fractions"
+        )
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
@@ -135,12 +152,21 @@ def _infer_parser(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--data", type=Path, help="dataset (.h5): observe one of its materials")
     src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
     parser.add_argument("--material", type=int, help="with --data: material index")
-    parser.add_argument("--designs", help="with --data: design indices ('2', '0,2,4') or eigen-strains "
-                                          "('--designs=0.05,-0.05') (default: all)")
-    parser.add_argument("--frames", help="with --data: frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
-                                         "(write the '=': the value starts with '-') (default: -1)")
-    parser.add_argument("--noise", choices=["halfcauchy", "known"], default="halfcauchy",
-                        help="unknown noise per component, or the measurement's sd columns")
+    parser.add_argument(
+        "--designs",
+        help="with --data: design indices ('2', '0,2,4') or eigen-strains ('--designs=0.05,-0.05') (default: all)",
+    )
+    parser.add_argument(
+        "--frames",
+        help="with --data: frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
+        "(write the '=': the value starts with '-') (default: -1)",
+    )
+    parser.add_argument(
+        "--noise",
+        choices=["halfcauchy", "known"],
+        default="halfcauchy",
+        help="unknown noise per component, or the measurement's sd columns",
+    )
     add_output(parser, "output directory")
     _add_sampler(parser)
 
@@ -149,8 +175,9 @@ def _noise_parser(parser: argparse.ArgumentParser) -> None:
     """``skinid noise``: a dataset with spatially correlated noise added."""
     parser.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
     parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
-    parser.add_argument("--level", type=float, required=True,
-                        help="amplitude as a fraction of the max |strain| of the training data")
+    parser.add_argument(
+        "--level", type=float, required=True, help="amplitude as a fraction of the max |strain| of the training data"
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     add_output(parser, "noisy dataset (.h5)")
 
@@ -158,30 +185,55 @@ def _noise_parser(parser: argparse.ArgumentParser) -> None:
 def _check_parser(parser: argparse.ArgumentParser) -> None:
     """``skinid check``: model criticism of measurements against the FE model."""
     parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
-    parser.add_argument("--config", help="preset or TOML of the mesh the check runs on "
-                                         "(default: the emulator's dataset configuration)")
+    parser.add_argument(
+        "--config", help="preset or TOML of the mesh the check runs on (default: the emulator's dataset configuration)"
+    )
     start = parser.add_mutually_exclusive_group()
-    start.add_argument("--emulator", type=Path, help="emulator directory: its posterior mode is the start "
-                                                     "(default: the best of 5 spread points)")
-    start.add_argument("--start", type=float, nargs=5, metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
-                       help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
-                            "default: the best of 5 spread points)")
+    start.add_argument(
+        "--emulator",
+        type=Path,
+        help="emulator directory: its posterior mode is the start (default: the best of 5 spread points)",
+    )
+    start.add_argument(
+        "--start",
+        type=float,
+        nargs=5,
+        metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
+        help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
+        "default: the best of 5 spread points)",
+    )
     add_output(parser, "report directory (its fe_runs/ keeps finished FE runs for --resume)", resumable=True)
-    parser.add_argument("--noise-sd", type=float, nargs=3, metavar=("XX", "YY", "XY"),
-                        help="measurement noise sd per component [strain] (default: the files' sd columns)")
-    parser.add_argument("--noise-length", type=float, default=0.0,
-                        help="noise correlation length [mm] (0: independent points)")
-    parser.add_argument("--noise-nugget", type=float, default=0.0,
-                        help="uncorrelated share of the noise variance in [0, 1]")
-    parser.add_argument("--dic-window", type=float, default=1.0,
-                        help="the DIC strain window (virtual strain gauge) side [mm]")
-    parser.add_argument("--spacing", type=float, default=1.0,
-                        help="use one measured point per square of this side [mm]")
-    parser.add_argument("--no-discretisation", action="store_true",
-                        help="skip the refined-mesh estimate of the check's discretisation error")
-    parser.add_argument("--refine", choices=["uniform", "edge"], default="uniform",
-                        help="the estimate's refined mesh: every size halved, or only the membrane-edge "
-                             "cells (for fine or quadratic meshes); layers doubled in both")
+    parser.add_argument(
+        "--noise-sd",
+        type=float,
+        nargs=3,
+        metavar=("XX", "YY", "XY"),
+        help="measurement noise sd per component [strain] (default: the files' sd columns)",
+    )
+    parser.add_argument(
+        "--noise-length", type=float, default=0.0, help="noise correlation length [mm] (0: independent points)"
+    )
+    parser.add_argument(
+        "--noise-nugget", type=float, default=0.0, help="uncorrelated share of the noise variance in [0, 1]"
+    )
+    parser.add_argument(
+        "--dic-window", type=float, default=1.0, help="the DIC strain window (virtual strain gauge) side [mm]"
+    )
+    parser.add_argument(
+        "--spacing", type=float, default=1.0, help="use one measured point per square of this side [mm]"
+    )
+    parser.add_argument(
+        "--no-discretisation",
+        action="store_true",
+        help="skip the refined-mesh estimate of the check's discretisation error",
+    )
+    parser.add_argument(
+        "--refine",
+        choices=["uniform", "edge"],
+        default="uniform",
+        help="the estimate's refined mesh: every size halved, or only the membrane-edge "
+        "cells (for fine or quadratic meshes); layers doubled in both",
+    )
     parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
     parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
     parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
@@ -195,16 +247,27 @@ def _measurement_parser(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
     p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
     _add_dic_import(p)
-    p.add_argument("--alpha", type=float, nargs=2, required=True, metavar=("A11", "A22"),
-                   help="the membrane design (alpha11, alpha22)")
+    p.add_argument(
+        "--alpha",
+        type=float,
+        nargs=2,
+        required=True,
+        metavar=("A11", "A22"),
+        help="the membrane design (alpha11, alpha22)",
+    )
     p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
     p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
     add_output(p, "measurement CSV to write")
     p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
     p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
     _add_dic_import(p)
-    p.add_argument("--alpha", type=float, nargs=2, metavar=("A11", "A22"),
-                   help="the membrane design: report the plausibility check on the figure")
+    p.add_argument(
+        "--alpha",
+        type=float,
+        nargs=2,
+        metavar=("A11", "A22"),
+        help="the membrane design: report the plausibility check on the figure",
+    )
     p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
     add_output(p, "figure (.png)")
 
@@ -215,45 +278,83 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
-    p.add_argument("--designs", required=True, help="design indices ('2', '7,6,13') or eigen-strain pairs "
-                                                    "('--designs=0.05,-0.05,-0.05,0.05')")
-    p.add_argument("--frames", default="-1", help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
-                                                  "(write the '=': the value starts with '-')")
+    p.add_argument(
+        "--designs",
+        required=True,
+        help="design indices ('2', '7,6,13') or eigen-strain pairs ('--designs=0.05,-0.05,-0.05,0.05')",
+    )
+    p.add_argument(
+        "--frames",
+        default="-1",
+        help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 (write the '=': the value starts with '-')",
+    )
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)
     p = sub.add_parser("setups", help="single vs multi-frame vs multi-membrane (the paper's Fig. 8)")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
-    add_renamed_option(p, "--designs", old="--design", required=True,
-                       help="the single design: index ('7') or eigen-strains ('--designs=0.05,-0.05')")
+    add_renamed_option(
+        p,
+        "--designs",
+        old="--design",
+        required=True,
+        help="the single design: index ('7') or eigen-strains ('--designs=0.05,-0.05')",
+    )
     p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
-    p.add_argument("--others", help="the multi-membrane setup's other designs, e.g. '0,13' or '-0.05,0.05,0.05,0.05' "
-                                    "(default: the n - 1 designs farthest apart in alpha)")
+    p.add_argument(
+        "--others",
+        help="the multi-membrane setup's other designs, e.g. '0,13' or '-0.05,0.05,0.05,0.05' "
+        "(default: the n - 1 designs farthest apart in alpha)",
+    )
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)
-    p = sub.add_parser("coverage", help="coverage of the 50 %% / 95 %% intervals and truth ranks over many "
-                                        "held-out cases (inference.coverage)")
+    p = sub.add_parser(
+        "coverage",
+        help="coverage of the 50 %% / 95 %% intervals and truth ranks over many held-out cases (inference.coverage)",
+    )
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-    p.add_argument("--data", type=Path, required=True,
-                   help="dataset (.h5) of test materials (its test split), on the emulator's mesh")
-    p.add_argument("--setup", choices=["single", "frames", "membranes"], default="single",
-                   help="the last frame of one design, its last --n frames, or --n designs")
+    p.add_argument(
+        "--data",
+        type=Path,
+        required=True,
+        help="dataset (.h5) of test materials (its test split), on the emulator's mesh",
+    )
+    p.add_argument(
+        "--setup",
+        choices=["single", "frames", "membranes"],
+        default="single",
+        help="the last frame of one design, its last --n frames, or --n designs",
+    )
     p.add_argument("--n", type=int, default=3, help="frames / membranes of the multi setups")
-    p.add_argument("--noise-sd", type=float, default=0.0,
-                   help="independent noise sd added and stated [strain] (0: noise-free, unknown noise)")
+    p.add_argument(
+        "--noise-sd",
+        type=float,
+        default=0.0,
+        help="independent noise sd added and stated [strain] (0: noise-free, unknown noise)",
+    )
     p.add_argument("--noise-seeds", type=int, default=1, help="noise draws per material and design")
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)
     p = sub.add_parser("noise", help="the paper's 9 noise cases: PCA, GP R², test-set posteriors")
     p.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
-    add_renamed_option(p, "--designs", old="--design", required=True,
-                       help="the design observed (last frame): index ('7') or eigen-strains ('--designs=0.05,-0.05')")
+    add_renamed_option(
+        p,
+        "--designs",
+        old="--design",
+        required=True,
+        help="the design observed (last frame): index ('7') or eigen-strains ('--designs=0.05,-0.05')",
+    )
     p.add_argument("--lengths", type=float, nargs="+", default=[0.1, 1.0, 5.0], help="noise correlation lengths [mm]")
-    p.add_argument("--levels", type=float, nargs="+", default=[0.01, 0.05, 0.10],
-                   help="noise amplitudes as fractions of the max |strain| of the training data")
+    p.add_argument(
+        "--levels",
+        type=float,
+        nargs="+",
+        default=[0.01, 0.05, 0.10],
+        help="noise amplitudes as fractions of the max |strain| of the training data",
+    )
     p.add_argument("--materials", help="subset of test materials (default: the test split)")
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
@@ -261,8 +362,13 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     _add_sampler(p)
 
 
-PARSERS = {"infer": _infer_parser, "noise": _noise_parser, "check": _check_parser,
-           "measurement": _measurement_parser, "study": _study_parser}
+PARSERS = {
+    "infer": _infer_parser,
+    "noise": _noise_parser,
+    "check": _check_parser,
+    "measurement": _measurement_parser,
+    "study": _study_parser,
+}
 
 
 def _add_dic_import(p: argparse.ArgumentParser) -> None:
@@ -271,22 +377,42 @@ def _add_dic_import(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--format", choices=["auto", *FORMATS], default="auto", help="export format (auto: detect)")
     p.add_argument("--mm-per-px", type=float, help="image scale [mm/px] (needed for pixel coordinates)")
-    p.add_argument("--centre", type=float, nargs=2, default=[0.0, 0.0], metavar=("X", "Y"),
-                   help="membrane centre in the file's coordinates (file units)")
-    p.add_argument("--rotation", type=float, default=0.0,
-                   help="angle [deg] from the file's x axis to the membrane's x (alpha11) axis, towards file y")
-    p.add_argument("--flip-y", action="store_true",
-                   help="the file's y axis points down (image coordinates): mirror it into the membrane frame")
-    p.add_argument("--strain", choices=["log", "green", "engineering"],
-                   help="strain measure, when the file does not state it (green = Lagrange)")
+    p.add_argument(
+        "--centre",
+        type=float,
+        nargs=2,
+        default=[0.0, 0.0],
+        metavar=("X", "Y"),
+        help="membrane centre in the file's coordinates (file units)",
+    )
+    p.add_argument(
+        "--rotation",
+        type=float,
+        default=0.0,
+        help="angle [deg] from the file's x axis to the membrane's x (alpha11) axis, towards file y",
+    )
+    p.add_argument(
+        "--flip-y",
+        action="store_true",
+        help="the file's y axis points down (image coordinates): mirror it into the membrane frame",
+    )
+    p.add_argument(
+        "--strain",
+        choices=["log", "green", "engineering"],
+        help="strain measure, when the file does not state it (green = Lagrange)",
+    )
     p.add_argument("--percent", action="store_true", help="strains are in percent")
     p.add_argument("--config", default="small", help="preset or TOML giving the membrane and block sizes")
     table = p.add_argument_group("--format table")
     table.add_argument("--delimiter", help="field separator, e.g. ';', ',', tab (default: detect)")
     table.add_argument("--decimal", choices=[".", ","], help="decimal mark (default: detect)")
     table.add_argument("--encoding", help="text encoding (default: BOM, UTF-8, else Latin-1)")
-    table.add_argument("--columns", nargs=5, metavar=("X", "Y", "EXX", "EYY", "EXY"),
-                       help="names of the coordinate and strain (tensor shear) columns")
+    table.add_argument(
+        "--columns",
+        nargs=5,
+        metavar=("X", "Y", "EXX", "EYY", "EXY"),
+        help="names of the coordinate and strain (tensor shear) columns",
+    )
     table.add_argument("--units", choices=["mm", "px"], help="coordinate unit when the header does not say")
     table.add_argument("--missing", nargs="+", default=[], help="extra missing-value markers, e.g. 'n. def.'")
     table.add_argument("--skip", type=int, default=0, help="lines before the header to skip")
@@ -295,9 +421,16 @@ def _add_dic_import(p: argparse.ArgumentParser) -> None:
 def settings_of(args):
     from inference.studies import SamplerSettings
 
-    return SamplerSettings(chains=args.chains, warmup=args.warmup, draws=args.draws, seed=args.seed,
-                           n_jobs=args.jobs, gp_variance=args.gp_variance, progress=not args.quiet,
-                           emulator_error=args.emulator_error == "on")
+    return SamplerSettings(
+        chains=args.chains,
+        warmup=args.warmup,
+        draws=args.draws,
+        seed=args.seed,
+        n_jobs=args.jobs,
+        gp_variance=args.gp_variance,
+        progress=not args.quiet,
+        emulator_error=args.emulator_error == "on",
+    )
 
 
 def print_summary(summary, out: Path) -> None:
@@ -305,8 +438,9 @@ def print_summary(summary, out: Path) -> None:
     print(f"{'':>8} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
     for name, e in summary.parameters.items():
         true = "" if e.true is None else f"{e.true:.4g}"
-        print(f"{name:>8} {e.median:>10.4g} [{e.q2_5:>10.4g}, {e.q97_5:>10.4g}] "
-              f"{e.r_hat:>6.3f} {e.ess:>6.0f} {true:>10}")
+        print(
+            f"{name:>8} {e.median:>10.4g} [{e.q2_5:>10.4g}, {e.q97_5:>10.4g}] {e.r_hat:>6.3f} {e.ess:>6.0f} {true:>10}"
+        )
     for w in summary.warnings:
         print(f"warning: {w}")
     if summary.error_budget_statement:
@@ -406,27 +540,53 @@ def _check_coverage(args, n_max: int | None) -> None:
 def _coverage(args, emulator, data) -> None:
     from inference.coverage import coverage_study
 
-    res = coverage_study(emulator, data, args.setup, settings_of(args), args.out, args.n, args.noise_sd,
-                         args.noise_seeds, _ints(args.materials, "--materials"))
+    res = coverage_study(
+        emulator,
+        data,
+        args.setup,
+        settings_of(args),
+        args.out,
+        args.n,
+        args.noise_sd,
+        args.noise_seeds,
+        _ints(args.materials, "--materials"),
+    )
     for name, e in res.parameters.items():
-        print(f"{name:>6}: 95 % intervals cover {e.coverage_95:.2f} (sd {e.binomial_sd_95:.2f}), "
-              f"50 % intervals {e.coverage_50:.2f} (sd {e.binomial_sd_50:.2f})")
+        print(
+            f"{name:>6}: 95 % intervals cover {e.coverage_95:.2f} (sd {e.binomial_sd_95:.2f}), "
+            f"50 % intervals {e.coverage_50:.2f} (sd {e.binomial_sd_50:.2f})"
+        )
     print(f"{res.n_cases} cases; wrote {args.out}/coverage.json and ranks.png")
 
 
 def _noise_study(args, data) -> None:
     from inference.studies import noise_study
 
-    noise_study(data, args.out, args.designs, settings_of(args), tuple(args.lengths), tuple(args.levels),
-                _ints(args.materials, "--materials"), {"gp_fraction": args.gp_fraction, "restarts": args.restarts})
+    noise_study(
+        data,
+        args.out,
+        args.designs,
+        settings_of(args),
+        tuple(args.lengths),
+        tuple(args.levels),
+        _ints(args.materials, "--materials"),
+        {"gp_fraction": args.gp_fraction, "restarts": args.restarts},
+    )
     print(f"wrote {args.out}/README.md")
 
 
 def _test_set(args, emulator, data) -> None:
     from inference.studies import test_set_study
 
-    res = test_set_study(emulator, data, args.designs, _ints(args.frames, "--frames"),
-                         settings_of(args), args.out, _ints(args.materials, "--materials"))
+    res = test_set_study(
+        emulator,
+        data,
+        args.designs,
+        _ints(args.frames, "--frames"),
+        settings_of(args),
+        args.out,
+        _ints(args.materials, "--materials"),
+    )
     print(json.dumps(res, indent=2))
     print(f"wrote {args.out}/study.json and accuracy.png")
 
@@ -435,8 +595,11 @@ def _setups_designs(args, data) -> list[int]:
     """The single design, then the multi-membrane setup's others, checked before any study runs."""
     from inference.studies import spread_designs
 
-    others = (design_indices(args.others, data.designs, args.data, "--others") if args.others
-              else spread_designs(data.designs, args.designs, args.n)[1:])
+    others = (
+        design_indices(args.others, data.designs, args.data, "--others")
+        if args.others
+        else spread_designs(data.designs, args.designs, args.n)[1:]
+    )
     bad = [j for j in [args.designs, *others] if not 0 <= j < len(data.designs)]
     if bad:
         raise ValueError(f"design {bad[0]} is not in [0, {len(data.designs)}) of {args.data}")
@@ -453,8 +616,16 @@ def _setups(args, emulator, data, designs: list[int]) -> None:
         f"{len(designs)} membranes": (designs, [-1]),
     }
     results = {
-        label: test_set_study(emulator, data, d, f, settings_of(args), args.out / label.replace(" ", "_"),
-                              _ints(args.materials, "--materials"), label)
+        label: test_set_study(
+            emulator,
+            data,
+            d,
+            f,
+            settings_of(args),
+            args.out / label.replace(" ", "_"),
+            _ints(args.materials, "--materials"),
+            label,
+        )
         for label, (d, f) in setups.items()
     }
     setups_plot(results, args.out / "setups.png")
@@ -476,8 +647,10 @@ def cmd_noise(args) -> None:
         raise ValueError(f"--level: the noise level must be a fraction in [0, 1), got {args.level}")
     data = StrainDataset.open(args.data)
     add_noise(data, args.out, args.length, args.level, args.seed)
-    print(f"added noise (length {args.length} mm, level {args.level:.0%}, seed {args.seed}) to "
-          f"{int((data.status == 1).sum())} simulations\nwrote {args.out}")
+    print(
+        f"added noise (length {args.length} mm, level {args.level:.0%}, seed {args.seed}) to "
+        f"{int((data.status == 1).sum())} simulations\nwrote {args.out}"
+    )
 
 
 def check_inputs(args):
@@ -493,9 +666,16 @@ def check_inputs(args):
 
     check_output(args.out, args.force, directory=True, resume=args.resume)
     _check_check_options(args)
-    settings = CheckSettings(candidates=args.candidates or list(EFFECTS), add=args.add, increments=args.increments,
-                             confirm=args.confirm, gauge=StrainGauge(args.dic_window), spacing=args.spacing,
-                             discretisation=not args.no_discretisation, refinement=args.refine)
+    settings = CheckSettings(
+        candidates=args.candidates or list(EFFECTS),
+        add=args.add,
+        increments=args.increments,
+        confirm=args.confirm,
+        gauge=StrainGauge(args.dic_window),
+        spacing=args.spacing,
+        discretisation=not args.no_discretisation,
+        refinement=args.refine,
+    )
     emulator = None if args.emulator is None else Emulator.load(args.emulator)
     if args.config is not None:
         config = load_config(args.config)
@@ -503,11 +683,13 @@ def check_inputs(args):
         config = config_from_toml(emulator.provenance.dataset_config)
     else:
         raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
-    bounds = (emulator.param_bounds if emulator is not None
-              else config.sweep.box)
+    bounds = emulator.param_bounds if emulator is not None else config.sweep.box
     if args.start is not None:
-        outside = [f"{n} = {v:g} not in [{lo:g}, {hi:g}]" for n, v, (lo, hi) in zip(PARAM_NAMES, args.start, bounds)
-                   if not lo <= v <= hi]
+        outside = [
+            f"{n} = {v:g} not in [{lo:g}, {hi:g}]"
+            for n, v, (lo, hi) in zip(PARAM_NAMES, args.start, bounds)
+            if not lo <= v <= hi
+        ]
         if outside:
             raise ValueError(f"--start is outside the prior box: {'; '.join(outside)}")
         settings.start = np.array(args.start)
@@ -551,15 +733,26 @@ def cmd_check(args) -> None:
     settings, config, bounds, emulator, measurements, noise = collective(comm, lambda: check_inputs(args))
     if args.force:  # the inputs are read and checked: start over, without the old report's FE runs
         on_root(comm, lambda: remove_output(args.out))
-    result = run_check(measurements, noise, settings, config, bounds, emulator, args.mesh_dir, comm,
-                       cache_dir=Path(args.out) / "fe_runs")
+    result = run_check(
+        measurements,
+        noise,
+        settings,
+        config,
+        bounds,
+        emulator,
+        args.mesh_dir,
+        comm,
+        cache_dir=Path(args.out) / "fe_runs",
+    )
     if comm.rank == 0:
         path = write_report(result, args.out)
         print(result.diagnosis.text)
         for v in result.versions:
             m = v.metrics
-            print(f"{v.calibration.label:>30}: RMSE {m.rmse:.3e}, chi2/dof {m.chi2_per_dof:.3f}, "
-                  f"PPC p {m.ppc_p:.3f}, {'structured' if m.structured else 'consistent with noise'}")
+            print(
+                f"{v.calibration.label:>30}: RMSE {m.rmse:.3e}, chi2/dof {m.chi2_per_dof:.3f}, "
+                f"PPC p {m.ppc_p:.3f}, {'structured' if m.structured else 'consistent with noise'}"
+            )
         print(f"wrote {path}")
 
 
@@ -570,12 +763,27 @@ def dic_settings(args):
 
     mesh = load_config(args.config).mesh
     delimiter = {"tab": "\t", "\\t": "\t"}.get(args.delimiter, args.delimiter)
-    table = TableOptions(delimiter=delimiter, decimal=args.decimal, encoding=args.encoding,
-                         columns=tuple(args.columns) if args.columns else None, units=args.units,
-                         missing=tuple(args.missing), skip=args.skip)
-    return ImportSettings(format=args.format, mm_per_px=args.mm_per_px, centre=tuple(args.centre),
-                          rotation=args.rotation, flip_y=args.flip_y, strain=args.strain, percent=args.percent,
-                          membrane_half=mesh.membrane_size / 2, block_half=mesh.length / 2, table=table)
+    table = TableOptions(
+        delimiter=delimiter,
+        decimal=args.decimal,
+        encoding=args.encoding,
+        columns=tuple(args.columns) if args.columns else None,
+        units=args.units,
+        missing=tuple(args.missing),
+        skip=args.skip,
+    )
+    return ImportSettings(
+        format=args.format,
+        mm_per_px=args.mm_per_px,
+        centre=tuple(args.centre),
+        rotation=args.rotation,
+        flip_y=args.flip_y,
+        strain=args.strain,
+        percent=args.percent,
+        membrane_half=mesh.membrane_size / 2,
+        block_half=mesh.length / 2,
+        table=table,
+    )
 
 
 def _dic_field(args, settings):
@@ -583,9 +791,11 @@ def _dic_field(args, settings):
     from inference.dic_import import load_dic
 
     field = load_dic(args.file, settings)
-    print(f"read {field.n_rows} rows of {args.file} ({field.format}): {field.n_missing} missing, "
-          f"{field.n_outside} outside the model block (|x|, |y| <= {settings.block_half:g} mm), "
-          f"{len(field.xy)} points kept")
+    print(
+        f"read {field.n_rows} rows of {args.file} ({field.format}): {field.n_missing} missing, "
+        f"{field.n_outside} outside the model block (|x|, |y| <= {settings.block_half:g} mm), "
+        f"{len(field.xy)} points kept"
+    )
     if field.notes:
         print("could not decide: " + "; ".join(field.notes))
     return field
@@ -632,8 +842,13 @@ def cmd_measurement(args) -> None:
     print(f"wrote {save_measurement(m, args.out, settings.block_half)}")
 
 
-COMMANDS = {"infer": cmd_infer, "study": cmd_study, "noise": cmd_noise, "check": cmd_check,
-            "measurement": cmd_measurement}
+COMMANDS = {
+    "infer": cmd_infer,
+    "study": cmd_study,
+    "noise": cmd_noise,
+    "check": cmd_check,
+    "measurement": cmd_measurement,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

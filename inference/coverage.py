@@ -67,8 +67,9 @@ class CaseResult:
     divergences: int
 
 
-def cases_of(data: StrainDataset, setup: str, n: int = 3, materials: list[int] | None = None,
-             noise_seeds: int = 1) -> list[CoverageCase]:
+def cases_of(
+    data: StrainDataset, setup: str, n: int = 3, materials: list[int] | None = None, noise_seeds: int = 1
+) -> list[CoverageCase]:
     """Every (test material, starting design, noise seed) case of ``setup`` (see module doc)."""
     if setup not in SETUPS:
         raise ValueError(f"setup must be one of {SETUPS}, got '{setup}'")
@@ -85,21 +86,37 @@ def cases_of(data: StrainDataset, setup: str, n: int = 3, materials: list[int] |
 def noisy(observations: list[Observation], sd: float, seed: int) -> list[Observation]:
     """The observations with independent Gaussian noise of ``sd`` [strain] added and stated."""
     rng = np.random.default_rng(seed)
-    return [Observation(o.alpha, o.t, o.fields + rng.normal(0, sd, o.fields.shape), o.mask, np.full(3, sd),
-                        o.truth, o.source) for o in observations]
+    return [
+        Observation(
+            o.alpha, o.t, o.fields + rng.normal(0, sd, o.fields.shape), o.mask, np.full(3, sd), o.truth, o.source
+        )
+        for o in observations
+    ]
 
 
-def run_case(emulator: Emulator, data: StrainDataset, case: CoverageCase, settings: SamplerSettings,
-             noise_sd: float = 0.0) -> CaseResult:
+def run_case(
+    emulator: Emulator, data: StrainDataset, case: CoverageCase, settings: SamplerSettings, noise_sd: float = 0.0
+) -> CaseResult:
     """Sample the case's posterior and rank its truth."""
     observations = from_dataset(data, case.material, list(case.designs), list(case.frames))
     if noise_sd > 0:
         observations = noisy(observations, noise_sd, 1000 * case.material + case.seed)
-    posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, observations),
-                              noise="known" if noise_sd > 0 else "halfcauchy", gp_variance=settings.gp_variance,
-                              emulator_error=settings.emulator_error)
-    samples = sample_posterior(posterior, chains=settings.chains, warmup=settings.warmup, draws=settings.draws,
-                               seed=settings.seed + case.seed, n_jobs=settings.n_jobs, progress=False)
+    posterior = SkinPosterior(
+        emulator,
+        ObservedWeights.project(emulator, observations),
+        noise="known" if noise_sd > 0 else "halfcauchy",
+        gp_variance=settings.gp_variance,
+        emulator_error=settings.emulator_error,
+    )
+    samples = sample_posterior(
+        posterior,
+        chains=settings.chains,
+        warmup=settings.warmup,
+        draws=settings.draws,
+        seed=settings.seed + case.seed,
+        n_jobs=settings.n_jobs,
+        progress=False,
+    )
     draws = samples.draws[..., :5].reshape(-1, 5)
     thinned = draws[np.linspace(0, len(draws) - 1, RANK_DRAWS).astype(int)]
     truth = data.params[case.material]
@@ -113,9 +130,17 @@ def run_case(emulator: Emulator, data: StrainDataset, case: CoverageCase, settin
     )
 
 
-def coverage_study(emulator: Emulator, data: StrainDataset, setup: str, settings: SamplerSettings,
-                   out: Path | str, n: int = 3, noise_sd: float = 0.0, noise_seeds: int = 1,
-                   materials: list[int] | None = None) -> CoverageSummary:
+def coverage_study(
+    emulator: Emulator,
+    data: StrainDataset,
+    setup: str,
+    settings: SamplerSettings,
+    out: Path | str,
+    n: int = 3,
+    noise_sd: float = 0.0,
+    noise_seeds: int = 1,
+    materials: list[int] | None = None,
+) -> CoverageSummary:
     """Run (or resume) every case of ``setup``; write ``coverage.json`` and ``ranks.png``."""
     out = Path(out)
     results = []
@@ -128,8 +153,11 @@ def coverage_study(emulator: Emulator, data: StrainDataset, setup: str, settings
         write_text(path, json.dumps(asdict(results[-1])) + "\n")
     summary = summarise(results, setup, n, noise_sd, settings)
     write_text(out / "coverage.json", json.dumps(summary.to_json(), indent=2) + "\n")
-    rank_histograms(np.array([r.rank for r in results]), out / "ranks.png",
-                    f"{setup} (n = {n}), noise sd {noise_sd:g}: {len(results)} cases")
+    rank_histograms(
+        np.array([r.rank for r in results]),
+        out / "ranks.png",
+        f"{setup} (n = {n}), noise sd {noise_sd:g}: {len(results)} cases",
+    )
     return summary
 
 
@@ -161,8 +189,9 @@ class CoverageSummary:
         return asdict(self)
 
 
-def summarise(results: list[CaseResult], setup: str, n: int, noise_sd: float,
-              settings: SamplerSettings) -> CoverageSummary:
+def summarise(
+    results: list[CaseResult], setup: str, n: int, noise_sd: float, settings: SamplerSettings
+) -> CoverageSummary:
     """Coverage per parameter with its binomial sd, and whether it meets the goal."""
     n_cases = len(results)
     parameters = {}
@@ -170,11 +199,14 @@ def summarise(results: list[CaseResult], setup: str, n: int, noise_sd: float,
         c50 = float(np.mean([r.covered_50[k] for r in results]))
         c95 = float(np.mean([r.covered_95[k] for r in results]))
         parameters[name] = ParameterCoverage(
-            c50, c95, float(np.sqrt(c50 * (1 - c50) / n_cases)), float(np.sqrt(c95 * (1 - c95) / n_cases)),
+            c50,
+            c95,
+            float(np.sqrt(c50 * (1 - c50) / n_cases)),
+            float(np.sqrt(c95 * (1 - c95) / n_cases)),
             float(np.median([r.interval_share_95[k] for r in results])),
-            bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]))
-    return CoverageSummary(setup, n, noise_sd, n_cases, int(sum(r.divergences for r in results)), settings,
-                           parameters)
+            bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]),
+        )
+    return CoverageSummary(setup, n, noise_sd, n_cases, int(sum(r.divergences for r in results)), settings, parameters)
 
 
 def rank_histograms(ranks: np.ndarray, path: Path | str, title: str, bins: int = 10) -> Path:

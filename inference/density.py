@@ -86,8 +86,9 @@ class FusedLogDensity:
         if self.halfcauchy:
             s = self.noise_scale
             value += np.sum(np.log(2 / (np.pi * s)) - np.log1p((sigma / s) ** 2)) + np.sum(u[5:])
-            d_sigma = np.bincount(self.component, weights=(d_total * 2 * sigma[self.component]).sum(0),
-                                  minlength=self.n_comp)
+            d_sigma = np.bincount(
+                self.component, weights=(d_total * 2 * sigma[self.component]).sum(0), minlength=self.n_comp
+            )
             d_sigma += -2 * sigma / (s**2 + sigma**2)
             grad[5:] = d_sigma * sigma + 1.0
         return float(value), grad

@@ -39,10 +39,35 @@ FORMATS = ("vic", "vic9", "davis8", "davis10", "dice", "table")
 LENGTH_UNITS = {"mm": 1.0, "m": 1000.0, "cm": 10.0, "µm": 1e-3, "μm": 1e-3, "um": 1e-3}
 PIXEL_UNITS = ("px", "pixel", "pixels", "pix")
 FRACTION_UNITS = ("", "1", "-", "s", "mm/mm", "m/m")
-TENSORS = {"lagrange": "green", "green-lagrange": "green", "green lagrange": "green", "gl": "green",
-           "green": "green", "hencky": "log", "logarithmic": "log", "log": "log", "true": "log"}
-MISSING = ("", "nan", "-nan", "+nan", "na", "n/a", "#n/a", "#nv", "null", "none", "-", "--",
-           "n.def.", "n. def.", "1.#qnan", "-1.#ind")
+TENSORS = {
+    "lagrange": "green",
+    "green-lagrange": "green",
+    "green lagrange": "green",
+    "gl": "green",
+    "green": "green",
+    "hencky": "log",
+    "logarithmic": "log",
+    "log": "log",
+    "true": "log",
+}
+MISSING = (
+    "",
+    "nan",
+    "-nan",
+    "+nan",
+    "na",
+    "n/a",
+    "#n/a",
+    "#nv",
+    "null",
+    "none",
+    "-",
+    "--",
+    "n.def.",
+    "n. def.",
+    "1.#qnan",
+    "-1.#ind",
+)
 ALIASES = {
     "x": ("x", "coordinate_x", "coordinate x", "x coordinate"),
     "y": ("y", "coordinate_y", "coordinate y", "y coordinate"),
@@ -216,12 +241,15 @@ class Plausibility:
             return f"implausible: {self.problem}"
         if not math.isfinite(self.ratio):
             return f"plausibility not checked: the design imposes less than {IMPOSED_FLOOR:g} log strain"
-        return (f"plausible: mean log strain under the membrane ({self.n_points} points) xx {m[0]:.4g}, "
-                f"yy {m[1]:.4g}, xy {m[2]:.2g}; design ln(1 + t·α) {e[0]:.4g}, {e[1]:.4g}; "
-                f"ratio {self.ratio:.2f}, cosine {self.cosine:.3f}")
+        return (
+            f"plausible: mean log strain under the membrane ({self.n_points} points) xx {m[0]:.4g}, "
+            f"yy {m[1]:.4g}, xy {m[2]:.2g}; design ln(1 + t·α) {e[0]:.4g}, {e[1]:.4g}; "
+            f"ratio {self.ratio:.2f}, cosine {self.cosine:.3f}"
+        )
 
 
 # ---------------------------------------------------------------- text and numbers
+
 
 def _fail(path: Path, line: int | None, problem: str):
     where = f"{path}:{line}" if line else f"{path}"
@@ -235,7 +263,7 @@ def _decode(path: Path, encoding: str | None, fallback: str = "utf-8") -> tuple[
     bom = data.startswith(b"\xef\xbb\xbf")
     chosen = "utf-8" if bom else encoding or fallback
     try:
-        return data[3 if bom else 0:].decode(chosen), []
+        return data[3 if bom else 0 :].decode(chosen), []
     except LookupError:
         _fail(path, None, f"unknown encoding '{chosen}'")
     except UnicodeDecodeError as exc:
@@ -259,8 +287,14 @@ def _cells(line: str, delimiter: str | None) -> list[str]:
     return [c.strip().strip('"').strip() for c in next(csv.reader([line], delimiter=delimiter))]
 
 
-def _numbers(path: Path, rows: list[tuple[int, str]], delimiter: str | None, n_cols: int,
-             decimal: str = ".", missing: tuple[str, ...] = MISSING) -> np.ndarray:
+def _numbers(
+    path: Path,
+    rows: list[tuple[int, str]],
+    delimiter: str | None,
+    n_cols: int,
+    decimal: str = ".",
+    missing: tuple[str, ...] = MISSING,
+) -> np.ndarray:
     """(n, n_cols) values of data rows (line number, text); missing markers -> NaN.
 
     Raises:
@@ -290,6 +324,7 @@ def _data_rows(lines: list[str], start: int) -> list[tuple[int, str]]:
 
 
 # ---------------------------------------------------------------- column names
+
 
 def parse_name(name: str) -> tuple[str, str | None, str | None]:
     """Split a column name into (base, unit, tensor).
@@ -361,16 +396,26 @@ def _tensor(name: str | None) -> tuple[str | None, str]:
     return measure, "stated" if measure else f"strain tensor '{name}' is not recognised"
 
 
-def _named_table(path: Path, fmt: str, names: list[str], values: np.ndarray, lines: np.ndarray,
-                 wanted: tuple[str, ...] | None = None) -> DicTable:
+def _named_table(
+    path: Path, fmt: str, names: list[str], values: np.ndarray, lines: np.ndarray, wanted: tuple[str, ...] | None = None
+) -> DicTable:
     """A DicTable from named columns carrying units ('x [mm]') and tensors ('exx [1] - Lagrange')."""
     col = find_columns(path, names, wanted)
     _, x_unit, _ = parse_name(names[col["x"]])
     _, e_unit, tensor = parse_name(names[col["exx"]])
     measure, source = _tensor(tensor)
-    return DicTable(path, fmt, values[:, [col["x"], col["y"]]], values[:, [col["exx"], col["eyy"], col["exy"]]],
-                    np.ones(len(values), dtype=bool), lines, _length_unit(path, x_unit), measure, source,
-                    _strain_unit(path, e_unit))
+    return DicTable(
+        path,
+        fmt,
+        values[:, [col["x"], col["y"]]],
+        values[:, [col["exx"], col["eyy"], col["exy"]]],
+        np.ones(len(values), dtype=bool),
+        lines,
+        _length_unit(path, x_unit),
+        measure,
+        source,
+        _strain_unit(path, e_unit),
+    )
 
 
 def _sigma_mask(table: DicTable, names: list[str], values: np.ndarray) -> DicTable:
@@ -383,6 +428,7 @@ def _sigma_mask(table: DicTable, names: list[str], values: np.ndarray) -> DicTab
 
 
 # ---------------------------------------------------------------- readers
+
 
 def read_vic(path: Path) -> DicTable:
     """VIC-3D (X, Y mm) or VIC-2D (x, y px) classic CSV; sigma < 0 marks missing points.
@@ -399,10 +445,18 @@ def read_vic(path: Path) -> DicTable:
     rows = _data_rows(lines, 1)
     values = _numbers(path, rows, ",", len(names))
     idx = [names.index(n) for n in (*xy_names, "exx", "eyy", "exy")]
-    table = DicTable(path, "vic", values[:, idx[:2]], values[:, idx[2:]], np.ones(len(rows), dtype=bool),
-                     np.array([r[0] for r in rows]), "mm" if metric else "px", "green",
-                     "the classic VIC export does not name its strain tensor: assumed Lagrange, VIC's default",
-                     False)
+    table = DicTable(
+        path,
+        "vic",
+        values[:, idx[:2]],
+        values[:, idx[2:]],
+        np.ones(len(rows), dtype=bool),
+        np.array([r[0] for r in rows]),
+        "mm" if metric else "px",
+        "green",
+        "the classic VIC export does not name its strain tensor: assumed Lagrange, VIC's default",
+        False,
+    )
     return _sigma_mask(table, names, values)
 
 
@@ -414,7 +468,7 @@ def read_vic9(path: Path) -> DicTable:
     lines = _lines(path)
     start = next((i for i, line in enumerate(lines[:20]) if sum("[" in c for c in _cells(line, ",")) >= 3), None)
     if start is None:
-        _fail(path, None, "no VIC header with units (e.g. \"X [mm]\") in the first 20 lines")
+        _fail(path, None, 'no VIC header with units (e.g. "X [mm]") in the first 20 lines')
     end = next((i for i in range(start + 1, len(lines)) if not lines[i].strip()), len(lines))
     more = next((i for i in range(end, len(lines)) if lines[i].strip()), None)
     if more is not None:
@@ -457,8 +511,11 @@ def read_dice(path: Path) -> DicTable:
     wanted = ("COORDINATE_X", "COORDINATE_Y", *(f"{kind}_STRAIN_{c}" for c in ("XX", "YY", "XY")))
     missing = [n for n in wanted if n not in names]
     if missing:
-        _fail(path, start + 1, f"DICe column(s) {', '.join(missing)} missing (strains need VSG_STRAIN_XX, _YY "
-                               f"and _XY); found {names}")
+        _fail(
+            path,
+            start + 1,
+            f"DICe column(s) {', '.join(missing)} missing (strains need VSG_STRAIN_XX, _YY and _XY); found {names}",
+        )
     rows = _data_rows(lines, start + 1)
     values = _numbers(path, rows, delimiter, len(names))
     col = {n: names.index(n) for n in names}
@@ -469,8 +526,18 @@ def read_dice(path: Path) -> DicTable:
     if "STATUS_FLAG" in col:
         valid &= np.isin(values[:, col["STATUS_FLAG"]], DICE_OK_STATUS)
     idx = [col[n] for n in wanted]
-    return DicTable(path, "dice", values[:, idx[:2]], values[:, idx[2:]], valid, np.array([r[0] for r in rows]),
-                    "px", "green", "stated", False)
+    return DicTable(
+        path,
+        "dice",
+        values[:, idx[:2]],
+        values[:, idx[2:]],
+        valid,
+        np.array([r[0] for r in rows]),
+        "px",
+        "green",
+        "stated",
+        False,
+    )
 
 
 def read_davis8(path: Path) -> DicTable:
@@ -486,8 +553,12 @@ def read_davis8(path: Path) -> DicTable:
     except ValueError as exc:
         _fail(path, 1, f"unreadable DaVis header ({exc})")
     if len(head) < 12 or head[2] != "2D-vector":
-        _fail(path, 1, "not a DaVis 8 '2D-vector' header (#DaVis <version> 2D-vector <step> <ny> <nx> + 6 quoted "
-                       "labels and units)")
+        _fail(
+            path,
+            1,
+            "not a DaVis 8 '2D-vector' header (#DaVis <version> 2D-vector <step> <ny> <nx> + 6 quoted "
+            "labels and units)",
+        )
     if not (head[4].isdigit() and head[5].isdigit() and int(head[4]) > 1 and int(head[5]) > 1):
         _fail(path, 1, f"grid size '{head[4]} {head[5]}' is not two integers <ny> <nx> > 1")
     ny, nx = int(head[4]), int(head[5])
@@ -503,8 +574,18 @@ def read_davis8(path: Path) -> DicTable:
         _fail(path, None, "the vectors are not on a regular grid with x varying fastest")
     green = _green_from_displacement(grid[..., 2], grid[..., 3], xs, ys)
     xy = grid[..., :2].reshape(-1, 2)
-    return DicTable(path, "davis8", xy, green.reshape(-1, 3), np.all(np.isfinite(green.reshape(-1, 3)), axis=1),
-                    np.array([r[0] for r in rows]), _length_unit(path, units.pop()), "green", "stated", False)
+    return DicTable(
+        path,
+        "davis8",
+        xy,
+        green.reshape(-1, 3),
+        np.all(np.isfinite(green.reshape(-1, 3)), axis=1),
+        np.array([r[0] for r in rows]),
+        _length_unit(path, units.pop()),
+        "green",
+        "stated",
+        False,
+    )
 
 
 def _green_from_displacement(u: np.ndarray, v: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
@@ -531,14 +612,18 @@ def read_table(path: Path, options: TableOptions) -> DicTable:
         _fail(path, None, f"the decimal mark and the delimiter are both '{decimal}'")
     names = _cells(lines[header], delimiter)
     values = _numbers(path, rows, delimiter, len(names), decimal, MISSING + tuple(options.missing))
-    table = _sigma_mask(_named_table(path, "table", names, values, np.array([r[0] for r in rows]), options.columns),
-                        names, values)
+    table = _sigma_mask(
+        _named_table(path, "table", names, values, np.array([r[0] for r in rows]), options.columns), names, values
+    )
     table.notes = notes
     if options.units is not None:
         unit = _length_unit(path, options.units)
         if table.length_unit not in (None, unit):
-            _fail(path, None, f"the header states coordinates in {table.length_unit}; "
-                              f"--units {options.units} contradicts it")
+            _fail(
+                path,
+                None,
+                f"the header states coordinates in {table.length_unit}; --units {options.units} contradicts it",
+            )
         table.length_unit = unit
     return table
 
@@ -565,6 +650,7 @@ def _sniff_decimal(path: Path, rows: list[tuple[int, str]], delimiter: str | Non
 
 # ---------------------------------------------------------------- detection
 
+
 def detect_format(path: Path) -> str:
     """The format of a DIC export from its first lines, when unambiguous.
 
@@ -586,8 +672,12 @@ def detect_format(path: Path) -> str:
             return "vic9"
         if "sigma" in _cells(first, ","):
             return "vic"
-    _fail(path, 1, f"format not recognised from the first line ({first[:60]!r}): give --format "
-                   f"({', '.join(FORMATS)}; 'table' for any other table)")
+    _fail(
+        path,
+        1,
+        f"format not recognised from the first line ({first[:60]!r}): give --format "
+        f"({', '.join(FORMATS)}; 'table' for any other table)",
+    )
 
 
 def read_dic(path: Path | str, settings: ImportSettings) -> DicTable:
@@ -604,6 +694,7 @@ def read_dic(path: Path | str, settings: ImportSettings) -> DicTable:
 
 # ---------------------------------------------------------------- conversion
 
+
 def frame_matrix(rotation: float, flip_y: bool = False) -> np.ndarray:
     """(2, 2) Q whose rows are the membrane's x and y axes in file coordinates.
 
@@ -615,8 +706,9 @@ def frame_matrix(rotation: float, flip_y: bool = False) -> np.ndarray:
     return np.array([[c, s], [s, -c]] if flip_y else [[c, s], [-s, c]])
 
 
-def to_membrane_frame(xy: np.ndarray, strain: np.ndarray, centre, scale: float, rotation: float,
-                      flip_y: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def to_membrane_frame(
+    xy: np.ndarray, strain: np.ndarray, centre, scale: float, rotation: float, flip_y: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """Points (n, 2) [file units] and strains (n, 3) [xx, yy, xy] into the membrane frame.
 
     x' = Q scale (x - centre) [mm] and E' = Q E Q^T, Q = :func:`frame_matrix` (rotation [rad]).
@@ -670,8 +762,12 @@ def _drop_duplicates(table: DicTable, keep: np.ndarray) -> np.ndarray:
         rows = idx[inverse.ravel() == k]
         if not np.all(table.strain[rows] == table.strain[rows[0]]):
             x, y = table.xy[rows[0]]
-            _fail(table.path, None, f"point ({x:g}, {y:g}) appears on lines {table.lines[rows[0]]} and "
-                                    f"{table.lines[rows[1]]} with different strains")
+            _fail(
+                table.path,
+                None,
+                f"point ({x:g}, {y:g}) appears on lines {table.lines[rows[0]]} and "
+                f"{table.lines[rows[1]]} with different strains",
+            )
     out = np.zeros_like(keep)
     out[idx[np.sort(first)]] = True
     return out
@@ -680,12 +776,17 @@ def _drop_duplicates(table: DicTable, keep: np.ndarray) -> np.ndarray:
 def _check_spread(path: Path, xy: np.ndarray, n_outside: int, block_half: float) -> None:
     """At least MIN_POINTS points, not all on one line."""
     if len(xy) < MIN_POINTS:
-        _fail(path, None, f"only {len(xy)} usable points inside the model block (|x|, |y| <= {block_half:g} mm; "
-                          f"{n_outside} outside: check --centre and --mm-per-px); need at least {MIN_POINTS}")
+        _fail(
+            path,
+            None,
+            f"only {len(xy)} usable points inside the model block (|x|, |y| <= {block_half:g} mm; "
+            f"{n_outside} outside: check --centre and --mm-per-px); need at least {MIN_POINTS}",
+        )
     s = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
     if s[1] <= 1e-9 * s[0]:
-        _fail(path, None, f"the {len(xy)} points lie on one line: a strain map needs a 2-D field "
-                          "(a line-slice export?)")
+        _fail(
+            path, None, f"the {len(xy)} points lie on one line: a strain map needs a 2-D field (a line-slice export?)"
+        )
 
 
 def convert(table: DicTable, settings: ImportSettings) -> DicField:
@@ -703,12 +804,21 @@ def convert(table: DicTable, settings: ImportSettings) -> DicField:
         log = to_log_strain(strain[:, 0], strain[:, 1], strain[:, 2], measure)
     except ValueError as exc:
         _fail(table.path, None, f"{exc} (are the strains in percent? give --percent)")
-    xy, log = to_membrane_frame(table.xy[keep], log, settings.centre, scale, math.radians(settings.rotation),
-                                settings.flip_y)
+    xy, log = to_membrane_frame(
+        table.xy[keep], log, settings.centre, scale, math.radians(settings.rotation), settings.flip_y
+    )
     inside = np.max(np.abs(xy), axis=1) <= settings.block_half
     _check_spread(table.path, xy[inside], int((~inside).sum()), settings.block_half)
-    return DicField(table.path, table.format, xy[inside], log[inside], len(table.xy), int((~valid).sum()),
-                    int((~inside).sum()), table.notes + notes + scale_notes)
+    return DicField(
+        table.path,
+        table.format,
+        xy[inside],
+        log[inside],
+        len(table.xy),
+        int((~valid).sum()),
+        int((~inside).sum()),
+        table.notes + notes + scale_notes,
+    )
 
 
 def load_dic(path: Path | str, settings: ImportSettings) -> DicField:
@@ -737,6 +847,7 @@ def save_measurement(measurement: Measurement, out: Path | str, block_half: floa
 
 # ---------------------------------------------------------------- plausibility
 
+
 def _frobenius(a: np.ndarray, b: np.ndarray) -> float:
     """Inner product of two in-plane tensors given as (xx, yy, xy)."""
     return float(a[0] * b[0] + a[1] * b[1] + 2 * a[2] * b[2])
@@ -756,8 +867,10 @@ def assess_plausibility(xy: np.ndarray, strain: np.ndarray, alpha, t: float, mem
     if math.sqrt(_frobenius(imposed, imposed)) < IMPOSED_FLOOR:
         return Plausibility(int(under.sum()), measured, imposed, math.nan, math.nan, None)
     if not under.any():
-        problem = (f"no measured point lies under the membrane (|x|, |y| <= {membrane_half:g} mm in the membrane "
-                   "frame): check --centre and --mm-per-px")
+        problem = (
+            f"no measured point lies under the membrane (|x|, |y| <= {membrane_half:g} mm in the membrane "
+            "frame): check --centre and --mm-per-px"
+        )
         return Plausibility(0, measured, imposed, math.nan, math.nan, problem)
     ratio = math.sqrt(_frobenius(measured, measured) / _frobenius(imposed, imposed))
     cosine = _cosine(measured, imposed)
@@ -791,6 +904,7 @@ def likely_cause(measured: np.ndarray, imposed: np.ndarray, ratio: float, cosine
 
 
 # ---------------------------------------------------------------- figure
+
 
 def plot_field(xy: np.ndarray, strain: np.ndarray, path: Path | str, membrane_half: float, title: str = "") -> Path:
     """Scatter maps of log strain xx, yy, xy at the points (n, 2) [mm], membrane outline dashed."""

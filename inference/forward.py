@@ -58,8 +58,9 @@ class ForwardModel:
         """Fields (n_obs, n_points, 3) at each parameter vector (p,); None where it failed."""
         raise NotImplementedError
 
-    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
-                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    def evaluate_with_jacobian(
+        self, points: Sequence[np.ndarray], names: Sequence[str]
+    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
         """(fields, d fields / d x[names] (n_obs, n_points, 3, k)) at each point; None where it failed."""
         raise NotImplementedError
 
@@ -141,10 +142,18 @@ class FEForward(ForwardModel):
 
     exact_jacobian = True
 
-    def __init__(self, config: Config, observations: Sequence[PointSet], skin_bounds: np.ndarray,
-                 mesh_dir: Path | str = "meshes", increments: int | None = None,
-                 comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None,
-                 gauge: StrainGauge = StrainGauge(), continuation: bool = True):
+    def __init__(
+        self,
+        config: Config,
+        observations: Sequence[PointSet],
+        skin_bounds: np.ndarray,
+        mesh_dir: Path | str = "meshes",
+        increments: int | None = None,
+        comm: MPI.Comm = MPI.COMM_WORLD,
+        cache_dir: Path | str | None = None,
+        gauge: StrainGauge = StrainGauge(),
+        continuation: bool = True,
+    ):
         from skinfem.mesh import ensure_mesh
         from skinfem.model import SkinModel
 
@@ -156,8 +165,9 @@ class FEForward(ForwardModel):
         self.names, self.bounds, self.null = parameter_space(skin_bounds, list(EFFECTS))
         self.comm = comm
         on_root(comm, lambda: ensure_mesh(config, mesh_dir))  # built once, before any rank reads it
-        self.model = collective(comm, lambda: SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir,
-                                                        effects=list(EFFECTS)))
+        self.model = collective(
+            comm, lambda: SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir, effects=list(EFFECTS))
+        )
         t_grid = self.model.load_fractions()
         self.designs = sorted({tuple(np.round(o.alpha, 12)) for o in observations})
         self.picks = []  # (design index, frame index) per observation
@@ -224,8 +234,9 @@ class FEForward(ForwardModel):
                 states.sensitivities.setdefault(i, (None, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
 
         start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
-        continued = start is not None and model.solve_frames(params, design, start[1], start[0], measure,
-                                                             at_reference, *self._continuation_solver())
+        continued = start is not None and model.solve_frames(
+            params, design, start[1], start[0], measure, at_reference, *self._continuation_solver()
+        )
         if not continued:
             out[:] = 0.0
             states.frames.clear()
@@ -321,7 +332,7 @@ class FEForward(ForwardModel):
         todo = [key for key in todo if key not in stored]
         start = time.perf_counter()
         units = [(key, j) for key in todo for j in range(len(self.designs))]  # one simulation each
-        mine = collective(self.comm, lambda: {u: self._run(*u) for u in units[self.comm.rank::self.comm.size]})
+        mine = collective(self.comm, lambda: {u: self._run(*u) for u in units[self.comm.rank :: self.comm.size]})
         parts = {u: result for part in self.comm.allgather(mine) for u, result in part.items()}
         for key in todo:
             results = [parts[key, j] for j in range(len(self.designs))]
@@ -340,8 +351,9 @@ class FEForward(ForwardModel):
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
         return [None if f is None else f[..., 0] for f in self._evaluate(points, ())]
 
-    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
-                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    def evaluate_with_jacobian(
+        self, points: Sequence[np.ndarray], names: Sequence[str]
+    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
         self.index(names)  # validates the names
         return [None if f is None else (f[..., 0], f[..., 1:]) for f in self._evaluate(points, tuple(names))]
 
@@ -374,7 +386,8 @@ class TaylorForward(ForwardModel):
         self.runs += len(points)
         return [self.f0 + self.jac @ (np.asarray(x, float) - self.x0) for x in points]
 
-    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
-                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+    def evaluate_with_jacobian(
+        self, points: Sequence[np.ndarray], names: Sequence[str]
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
         columns = self.jac[..., self.index(names)]
         return [(fields, columns) for fields in self.evaluate_many(points)]

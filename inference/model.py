@@ -91,10 +91,13 @@ def check_observation(emulator: Emulator, o: Observation) -> None:
             raise ValueError(
                 f"{where}: {name}*t = {value:g} is outside the emulator's training range "
                 f"[{lower[k]:g}, {upper[k]:g}] of {name}*t; it cannot extrapolate: observe designs and "
-                f"frames inside it, or fit an emulator on a dataset that covers them")
+                f"frames inside it, or fit an emulator on a dataset that covers them"
+            )
     if o.sd is not None and not np.all(np.isfinite(o.sd) & (np.asarray(o.sd) > 0)):
-        raise ValueError(f"{where}: the stated noise sd {np.asarray(o.sd).tolist()} (xx, yy, xy) must be positive "
-                         f"and finite: a zero sd makes the noise covariance singular")
+        raise ValueError(
+            f"{where}: the stated noise sd {np.asarray(o.sd).tolist()} (xx, yy, xy) must be positive "
+            f"and finite: a zero sd makes the noise covariance singular"
+        )
 
 
 @dataclass
@@ -178,17 +181,20 @@ class ErrorBudget:
 
     def statement(self, params: np.ndarray) -> str:
         """One sentence for the summary: which term limits the intervals."""
-        shares = (f"noise {self.noise:.0%}, GP {self.gp:.0%}, held-out excess {self.held_out_excess:.0%}, "
-                  f"PCA truncation {self.truncation:.0%} of the weights' variance")
+        shares = (
+            f"noise {self.noise:.0%}, GP {self.gp:.0%}, held-out excess {self.held_out_excess:.0%}, "
+            f"PCA truncation {self.truncation:.0%} of the weights' variance"
+        )
         if self.emulator <= self.noise:
             return f"the measurement noise limits these intervals ({shares})"
         if self.truncation >= self.gp + self.held_out_excess:
-            return (f"the emulator's PCA truncation, not your measurement, limits these intervals ({shares}): the "
-                    "field of view leaks the discarded components into the kept ones; refit the emulator with more "
-                    "components ('skinid surrogate fit --variance 0.999')")
+            return (
+                f"the emulator's PCA truncation, not your measurement, limits these intervals ({shares}): the "
+                "field of view leaks the discarded components into the kept ones; refit the emulator with more "
+                "components ('skinid surrogate fit --variance 0.999')"
+            )
         near = ", ".join(f"{n} = {v:.3g}" for n, v in zip(PARAM_NAMES, params))
-        return (f"the emulator, not your measurement, limits these intervals ({shares}): refine the dataset "
-                f"near {near}")
+        return f"the emulator, not your measurement, limits these intervals ({shares}): refine the dataset near {near}"
 
 
 class SkinPosterior:
@@ -400,17 +406,22 @@ class SkinPosterior:
         pick = draws[rng.choice(len(draws), size=min(n, len(draws)), replace=False)]
         fixed = torch.diagonal(self.fixed_gp_cov, dim1=-2, dim2=-1)
         with torch.no_grad():
-            ratios = np.stack([
-                (self.emulator.predict_weights(self.inputs(torch.as_tensor(p)))[1].T / fixed).numpy() for p in pick
-            ])
-        return {"ratio_median": float(np.median(ratios)), "ratio_5": float(np.percentile(ratios, 5)),
-                "ratio_95": float(np.percentile(ratios, 95))}
+            ratios = np.stack(
+                [(self.emulator.predict_weights(self.inputs(torch.as_tensor(p)))[1].T / fixed).numpy() for p in pick]
+            )
+        return {
+            "ratio_median": float(np.median(ratios)),
+            "ratio_5": float(np.percentile(ratios, 5)),
+            "ratio_95": float(np.percentile(ratios, 95)),
+        }
 
     def model_warnings(self) -> list[str]:
         """What the summary must say about the model itself: an emulator without a held-out excess."""
         if self.emulator_error and self.emulator.held_out_excess is None:
-            return ["this emulator has no held-out error model (fitted before skinid measured it): its error "
-                    "beyond the GP variance is not in these intervals; refit it with 'skinid surrogate fit'"]
+            return [
+                "this emulator has no held-out error model (fitted before skinid measured it): its error "
+                "beyond the GP variance is not in these intervals; refit it with 'skinid surrogate fit'"
+            ]
         return []
 
     def error_budget(self, values: np.ndarray) -> ErrorBudget:
@@ -431,10 +442,16 @@ def pyro_prior(posterior: SkinPosterior) -> tuple[torch.Tensor, torch.Tensor]:
     params = torch.stack(
         [pyro.sample(name, dist.Uniform(lo[i], lo[i] + span[i])) for i, name in enumerate(PARAM_NAMES)]
     )
-    sigma = torch.stack(
-        [pyro.sample(name, dist.HalfCauchy(torch.tensor(posterior.noise_scale, dtype=torch.float64)))
-         for name in posterior.names[5:]]
-    ) if posterior.noise == "halfcauchy" else torch.zeros(0, dtype=torch.float64)
+    sigma = (
+        torch.stack(
+            [
+                pyro.sample(name, dist.HalfCauchy(torch.tensor(posterior.noise_scale, dtype=torch.float64)))
+                for name in posterior.names[5:]
+            ]
+        )
+        if posterior.noise == "halfcauchy"
+        else torch.zeros(0, dtype=torch.float64)
+    )
     return params, sigma
 
 

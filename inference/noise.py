@@ -85,15 +85,23 @@ def add_noise(data: StrainDataset, out: Path | str, length: float, level: float,
 
         create_dataset_like(tmp, data)
         with h5py.File(tmp, "a") as f:
-            f.attrs["noise"] = json.dumps({"length_mm": length, "level": level, "seed": seed,
-                                           "amplitude": amplitude.tolist(), "source": str(data.path)})
+            f.attrs["noise"] = json.dumps(
+                {
+                    "length_mm": length,
+                    "level": level,
+                    "seed": seed,
+                    "amplitude": amplitude.tolist(),
+                    "source": str(data.path),
+                }
+            )
         for i in range(n_mat):
             clean = data.strain(i)
             noisy = clean + noise_fields(factor, amplitude, (n_des, n_frames), rng)
             for j in range(n_des):
                 if data.status[i, j] == STATUS_OK:
-                    write_simulation(tmp, i, j, noisy[j], STATUS_OK, "", int(data.newton_iterations[i, j]),
-                                     float(data.seconds[i, j]))
+                    write_simulation(
+                        tmp, i, j, noisy[j], STATUS_OK, "", int(data.newton_iterations[i, j]), float(data.seconds[i, j])
+                    )
                 elif data.status[i, j] != 0:
                     write_simulation(tmp, i, j, None, int(data.status[i, j]), data.messages[i, j])
 

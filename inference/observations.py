@@ -237,15 +237,18 @@ def _check_points(rows: np.ndarray, numbers: list[int], fail) -> None:
     conflicts = np.flatnonzero(np.any(rows != rows[earlier], axis=1))
     if len(conflicts):
         k = conflicts[0]
-        fail(numbers[k], f"point ({rows[k, 0]:g}, {rows[k, 1]:g}) is also on line {numbers[earlier[k]]}, "
-                         "with other values")
+        fail(
+            numbers[k],
+            f"point ({rows[k, 0]:g}, {rows[k, 1]:g}) is also on line {numbers[earlier[k]]}, with other values",
+        )
     s = np.linalg.svd(rows[:, :2] - rows[:, :2].mean(axis=0), compute_uv=False)
     if s[1] <= 1e-9 * s[0]:
         fail(numbers[-1], f"the {len(rows)} points lie on one line: a strain map needs a 2-D field")
 
 
-def write_measurement(path: Path | str, xy: np.ndarray, strain: np.ndarray, alpha, t: float,
-                      sd: np.ndarray | None = None) -> Path:
+def write_measurement(
+    path: Path | str, xy: np.ndarray, strain: np.ndarray, alpha, t: float, sd: np.ndarray | None = None
+) -> Path:
     """Write log strains at points as a measurement CSV (the format DIC exports are converted to)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -264,13 +267,15 @@ def map_to_cells(measurement: Measurement, cells_xy: np.ndarray, max_gap: float 
     gap, _ = cKDTree(measurement.xy).query(cells_xy)
     mask = np.all(np.isfinite(values), axis=1) & (gap <= max_gap)
     if mask.sum() < 10:
-        raise MeasurementError(
-            f"{measurement.path}: only {mask.sum()} skin cells lie inside the measured region"
-        )
+        raise MeasurementError(f"{measurement.path}: only {mask.sum()} skin cells lie inside the measured region")
     values[~mask] = np.nan
     sd = None if measurement.sd is None else np.median(measurement.sd, axis=0)
     return Observation(
-        alpha=measurement.alpha, t=measurement.t, fields=values, mask=mask, sd=sd,
+        alpha=measurement.alpha,
+        t=measurement.t,
+        fields=values,
+        mask=mask,
+        sd=sd,
         source=str(measurement.path),
     )
 
@@ -288,8 +293,9 @@ def thin(measurement: Measurement, spacing: float) -> Measurement:
     _, first = np.unique(cells, axis=0, return_index=True)
     keep = np.sort(first)
     sd = None if measurement.sd is None else measurement.sd[keep]
-    return Measurement(measurement.path, measurement.alpha, measurement.t, measurement.xy[keep],
-                       measurement.strain[keep], sd)
+    return Measurement(
+        measurement.path, measurement.alpha, measurement.t, measurement.xy[keep], measurement.strain[keep], sd
+    )
 
 
 def check_field_of_view(measurement: Measurement, membrane_half: float, band: float, n_params: int) -> None:
@@ -299,11 +305,14 @@ def check_field_of_view(measurement: Measurement, membrane_half: float, band: fl
         MeasurementError: naming the file and the problem.
     """
     if len(measurement.xy) <= n_params:
-        raise MeasurementError(f"{measurement.path}: {len(measurement.xy)} measured points are not more than the "
-                               f"{n_params} parameters the check calibrates")
+        raise MeasurementError(
+            f"{measurement.path}: {len(measurement.xy)} measured points are not more than the "
+            f"{n_params} parameters the check calibrates"
+        )
     ring = np.max(np.abs(measurement.xy), axis=1)
     if not np.any(np.abs(ring - membrane_half) <= band):
         lo, hi = measurement.xy.min(axis=0), measurement.xy.max(axis=0)
         raise MeasurementError(
             f"{measurement.path}: the field of view (x {lo[0]:.3g}..{hi[0]:.3g}, y {lo[1]:.3g}..{hi[1]:.3g} mm) "
-            f"contains no membrane edge (|x| or |y| = {membrane_half:g} mm): the check needs the edges")
+            f"contains no membrane edge (|x| or |y| = {membrane_half:g} mm): the check needs the edges"
+        )

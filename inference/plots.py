@@ -47,7 +47,11 @@ def corner_plot(samples, path: Path | str, title: str | None = None) -> Path:
     truth = samples.truth
     dt = az.from_dict({"posterior": {n: samples.draws[..., k] for k, n in enumerate(names)}})
     matrix = az.plot_pair(
-        dt, marginal=True, marginal_kind="kde", triangle="lower", backend="matplotlib",
+        dt,
+        marginal=True,
+        marginal_kind="kde",
+        triangle="lower",
+        backend="matplotlib",
         labeller=MapLabeller(var_name_map=LABELS),
         visuals={"scatter": {"alpha": 0.1, "color": "C0"}, "contour": {"color": "k"}},
         figure_kwargs={"figsize": (10, 10)},
@@ -94,10 +98,17 @@ def accuracy_plot(summaries: list[PosteriorSummary], bounds: np.ndarray, path: P
         lo = np.array([s.parameters[n].q2_5 for s in summaries])
         hi = np.array([s.parameters[n].q97_5 for s in summaries])
         covered = (lo <= true) & (true <= hi)
-        ax.errorbar(true, med, yerr=[med - lo, hi - med], fmt="o", ms=4, capsize=2,
-                    color="C0", ecolor="C0", alpha=0.8)
-        ax.plot(true[~covered], med[~covered], "o", mfc="none", mec="r", mew=1.5, ms=9,
-                label="truth outside the 95 % interval")
+        ax.errorbar(true, med, yerr=[med - lo, hi - med], fmt="o", ms=4, capsize=2, color="C0", ecolor="C0", alpha=0.8)
+        ax.plot(
+            true[~covered],
+            med[~covered],
+            "o",
+            mfc="none",
+            mec="r",
+            mew=1.5,
+            ms=9,
+            label="truth outside the 95 % interval",
+        )
         ax.plot(bounds[k], bounds[k], "k--", lw=0.8)
         ax.set_xlim(bounds[k])
         ax.set_ylim(bounds[k])
@@ -111,16 +122,32 @@ def accuracy_plot(summaries: list[PosteriorSummary], bounds: np.ndarray, path: P
     return save_figure(fig, path)
 
 
-def strain_maps(xy: np.ndarray, fields: list[np.ndarray], titles: list[str], path: Path | str,
-                membrane_half: float = 10.0, theta_deg: float | None = None, window: float = 20.0,
-                symmetric: bool = True, suptitle: str = "") -> Path:
+def strain_maps(
+    xy: np.ndarray,
+    fields: list[np.ndarray],
+    titles: list[str],
+    path: Path | str,
+    membrane_half: float = 10.0,
+    theta_deg: float | None = None,
+    window: float = 20.0,
+    symmetric: bool = True,
+    suptitle: str = "",
+) -> Path:
     """One row of cell-wise strain maps (see :func:`field_grid`)."""
     return field_grid(xy, [fields], [titles], path, membrane_half, theta_deg, window, symmetric, suptitle)
 
 
-def field_grid(xy: np.ndarray, rows: list[list[np.ndarray]], titles: list[list[str]], path: Path | str,
-               membrane_half: float = 10.0, theta_deg: float | None = None, window: float = 20.0,
-               symmetric: bool = True, suptitle: str = "") -> Path:
+def field_grid(
+    xy: np.ndarray,
+    rows: list[list[np.ndarray]],
+    titles: list[list[str]],
+    path: Path | str,
+    membrane_half: float = 10.0,
+    theta_deg: float | None = None,
+    window: float = 20.0,
+    symmetric: bool = True,
+    suptitle: str = "",
+) -> Path:
     """Cell-wise maps in a grid, membrane outline dashed, fiber direction arrowed.
 
     Args:
@@ -140,16 +167,26 @@ def field_grid(xy: np.ndarray, rows: list[list[np.ndarray]], titles: list[list[s
             shown = np.where(np.isfinite(values), values, 0.0)
             masked = ~np.all(np.isfinite(values[tri.triangles]), axis=1)
             tri.set_mask(masked)
-            im = ax.tripcolor(tri, shown, shading="gouraud", cmap="RdBu_r" if symmetric else "viridis",
-                              vmin=-vmax if symmetric else None, vmax=vmax)
+            im = ax.tripcolor(
+                tri,
+                shown,
+                shading="gouraud",
+                cmap="RdBu_r" if symmetric else "viridis",
+                vmin=-vmax if symmetric else None,
+                vmax=vmax,
+            )
             tri.set_mask(None)
             h = membrane_half
             ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)
             if theta_deg is not None:
                 t = np.radians(theta_deg)
                 tail = -0.9 * window
-                ax.annotate("", xy=(tail + 0.35 * window * np.cos(t), tail + 0.35 * window * np.sin(t)),
-                            xytext=(tail, tail), arrowprops=dict(arrowstyle="->", color="k", lw=1.5))
+                ax.annotate(
+                    "",
+                    xy=(tail + 0.35 * window * np.cos(t), tail + 0.35 * window * np.sin(t)),
+                    xytext=(tail, tail),
+                    arrowprops=dict(arrowstyle="->", color="k", lw=1.5),
+                )
                 ax.text(tail + 0.4 * window, tail, f"fibers {theta_deg:.0f}°", fontsize=8, va="center")
             ax.set_xlim(-window, window)
             ax.set_ylim(-window, window)
@@ -158,7 +195,7 @@ def field_grid(xy: np.ndarray, rows: list[list[np.ndarray]], titles: list[list[s
             ax.set_ylabel("y [mm]")
             ax.set_title(title, fontsize=10)
             fig.colorbar(im, ax=ax, label="log strain [-]", shrink=0.85)
-        for ax in axes[r, len(row):]:
+        for ax in axes[r, len(row) :]:
             ax.axis("off")
     if suptitle:
         fig.suptitle(suptitle, fontsize=11)

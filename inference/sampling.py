@@ -106,8 +106,9 @@ FIRST_WINDOW = 100  # fewest warm-up draws a mass-matrix estimate may replace th
 MAX_TREE_DEPTH, TARGET_ACCEPT = 8, 0.8
 
 
-def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray, potential_fn=None,
-                 first_window: int = FIRST_WINDOW):
+def _nuts_kernel(
+    posterior: SkinPosterior, inverse_mass: np.ndarray, potential_fn=None, first_window: int = FIRST_WINDOW
+):
     """Pyro's NUTS on ``potential_fn`` (default ``posterior.potential``) whose warm-up starts
     from ``inverse_mass``, through Pyro's public interface only.
 
@@ -146,8 +147,14 @@ def _nuts_kernel(posterior: SkinPosterior, inverse_mass: np.ndarray, potential_f
                 self.window_draws = 0
 
     potential_fn = posterior.potential if potential_fn is None else potential_fn
-    kernel = NUTS(potential_fn=potential_fn, adapt_step_size=True, adapt_mass_matrix=True, full_mass=True,
-                  target_accept_prob=TARGET_ACCEPT, max_tree_depth=MAX_TREE_DEPTH)
+    kernel = NUTS(
+        potential_fn=potential_fn,
+        adapt_step_size=True,
+        adapt_mass_matrix=True,
+        full_mass=True,
+        target_accept_prob=TARGET_ACCEPT,
+        max_tree_depth=MAX_TREE_DEPTH,
+    )
     kernel.mass_matrix_adapter = LaplaceStartedMassMatrix()
     return kernel
 
@@ -225,13 +232,22 @@ def quiet_overflow():
     treats as a divergence: the trajectory stops (after warm-up, it is counted in the summary).
     Every other warning still shows."""
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", r"(overflow|invalid value|divide by zero) encountered",
-                                RuntimeWarning, r"inference\.density")
+        warnings.filterwarnings(
+            "ignore", r"(overflow|invalid value|divide by zero) encountered", RuntimeWarning, r"inference\.density"
+        )
         yield
 
 
-def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndarray, warmup: int, draws: int,
-               seed: int, queue=None, chain: int = 0) -> ChainResult:
+def _run_chain(
+    posterior: SkinPosterior,
+    init: np.ndarray,
+    inverse_mass: np.ndarray,
+    warmup: int,
+    draws: int,
+    seed: int,
+    queue=None,
+    chain: int = 0,
+) -> ChainResult:
     from pyro.infer import MCMC
 
     torch.set_num_threads(1)
@@ -240,8 +256,14 @@ def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndar
     init = torch.as_tensor(init)
     recorder = _ChainRecorder(posterior.potential, init, queue, chain)
     kernel = _nuts_kernel(posterior, inverse_mass, recorder.potential)
-    mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup,
-                initial_params={"u": init}, disable_progbar=True, hook_fn=recorder.hook)
+    mcmc = MCMC(
+        kernel,
+        num_samples=draws,
+        warmup_steps=warmup,
+        initial_params={"u": init},
+        disable_progbar=True,
+        hook_fn=recorder.hook,
+    )
     with quiet_overflow():
         mcmc.run()
     u = mcmc.get_samples()["u"]
@@ -252,19 +274,40 @@ def _run_chain(posterior: SkinPosterior, init: np.ndarray, inverse_mass: np.ndar
     diverging[np.asarray(diagnostics["divergences"]["chain 0"], dtype=int)] = True
     stats = recorder.statistics(draws)
     log_likelihood, stats["lp"] = draw_statistics(posterior, u)
-    return ChainResult(values, diverging, float(kernel.step_size), time.perf_counter() - start,
-                       float(diagnostics["acceptance rate"]["chain 0"]), stats, log_likelihood)
+    return ChainResult(
+        values,
+        diverging,
+        float(kernel.step_size),
+        time.perf_counter() - start,
+        float(diagnostics["acceptance rate"]["chain 0"]),
+        stats,
+        log_likelihood,
+    )
 
 
 # dimensions of the variables of posterior.nc beyond (chain, draw); datum = (observation, PC weight)
 DIMS = {
-    "weights": ["datum"], "datum_observation": ["datum"], "datum_component": ["datum"], "datum_pc": ["datum"],
-    "noise_sd": ["datum"], "gp_variance": ["datum"], "truncation_variance": ["datum"],
+    "weights": ["datum"],
+    "datum_observation": ["datum"],
+    "datum_component": ["datum"],
+    "datum_pc": ["datum"],
+    "noise_sd": ["datum"],
+    "gp_variance": ["datum"],
+    "truncation_variance": ["datum"],
     "held_out_excess": ["datum"],
-    "alpha11": ["observation"], "alpha22": ["observation"], "t": ["observation"], "alpha11_t": ["observation"],
-    "alpha22_t": ["observation"], "source": ["observation"], "stated_sd": ["observation", "component"],
-    "cell_x": ["cell"], "cell_y": ["cell"], "strain_field": ["observation", "cell", "component"],
-    "prior_lower": ["parameter"], "prior_upper": ["parameter"], "truth": ["parameter"],
+    "alpha11": ["observation"],
+    "alpha22": ["observation"],
+    "t": ["observation"],
+    "alpha11_t": ["observation"],
+    "alpha22_t": ["observation"],
+    "source": ["observation"],
+    "stated_sd": ["observation", "component"],
+    "cell_x": ["cell"],
+    "cell_y": ["cell"],
+    "strain_field": ["observation", "cell", "component"],
+    "prior_lower": ["parameter"],
+    "prior_upper": ["parameter"],
+    "truth": ["parameter"],
 }
 COORDS = {"component": list(COMPONENTS), "parameter": list(PARAM_NAMES)}
 GROUP_ATTRS = {
@@ -279,17 +322,17 @@ GROUP_ATTRS = {
     },
     "log_likelihood": {
         "weights": "log density of each whitened PC weight (datum: see constant_data datum_*): the weights of one "
-                   "PC are correlated across observations by the emulator's error, so the terms are those of "
-                   "L^-1 w (L the Cholesky factor of that PC's covariance); they sum to the likelihood NUTS samples",
+        "PC are correlated across observations by the emulator's error, so the terms are those of "
+        "L^-1 w (L the Cholesky factor of that PC's covariance); they sum to the likelihood NUTS samples",
     },
     "observed_data": {
         "weights": "PC weights of the observed log strains (masked least-squares projection on the emulator's "
-                   "PCA basis); raw, not whitened; covariance per PC over the observations: GP + held-out excess "
-                   "+ PCA truncation + noise (inference.model)",
+        "PCA basis); raw, not whitened; covariance per PC over the observations: GP + held-out excess "
+        "+ PCA truncation + noise (inference.model)",
     },
     "constant_data": {
         "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
-                 "projection (noise_sd, PC-weight units); 'halfcauchy' has one sigma per strain component",
+        "projection (noise_sd, PC-weight units); 'halfcauchy' has one sigma per strain component",
         "strain_field": "observed log strain on the emulator's skin cells (cell_x, cell_y [mm]); NaN: masked",
     },
 }
@@ -553,10 +596,12 @@ class PosteriorSamples:
             step_sizes=tuple(self.step_sizes),
             acceptance_rates=tuple(self.acceptance_rates),
             seconds=self.seconds,
-            gp_variance_over_posterior=None if self.gp_variance_spread is None
+            gp_variance_over_posterior=None
+            if self.gp_variance_spread is None
             else GpVarianceSpread(**self.gp_variance_spread),
             error_budget=self.error_budget,
-            error_budget_statement=None if self.error_budget is None
+            error_budget_statement=None
+            if self.error_budget is None
             else self.error_budget.statement(self.error_budget_at),
             warnings=tuple(self.warnings(parameters)),
             observations=None if observations is None else tuple(observations),
@@ -574,12 +619,15 @@ class PosteriorSamples:
             lo, hi = float(np.percentile(x, 2.5)), float(np.percentile(x, 97.5))
             skin = {}
             if k < 5:
-                skin = {"prior": tuple(self.bounds[k].tolist()),
-                        "interval_share_of_prior": (hi - lo) / float(np.ptp(self.bounds[k]))}
+                skin = {
+                    "prior": tuple(self.bounds[k].tolist()),
+                    "interval_share_of_prior": (hi - lo) / float(np.ptp(self.bounds[k])),
+                }
                 if self.truth is not None:
                     skin.update(true=float(self.truth[k]), covered=bool(lo <= self.truth[k] <= hi))
-            out[n] = ParameterSummary(float(np.median(x)), lo, hi, float(rhat[n].values), float(bulk[n].values),
-                                      float(tail[n].values), **skin)
+            out[n] = ParameterSummary(
+                float(np.median(x)), lo, hi, float(rhat[n].values), float(bulk[n].values), float(tail[n].values), **skin
+            )
         return out
 
     def warnings(self, table: dict[str, ParameterSummary]) -> list[str]:
@@ -594,8 +642,16 @@ class PosteriorSamples:
         return messages
 
 
-def _run_chains(posterior: SkinPosterior, inits: list[np.ndarray], inverse_mass: np.ndarray, warmup: int,
-                draws: int, seeds: list[int], n_jobs: int, bar) -> list[ChainResult]:
+def _run_chains(
+    posterior: SkinPosterior,
+    inits: list[np.ndarray],
+    inverse_mass: np.ndarray,
+    warmup: int,
+    draws: int,
+    seeds: list[int],
+    n_jobs: int,
+    bar,
+) -> list[ChainResult]:
     """One chain per start in ``inits``, ``n_jobs`` at a time (spawned processes when > 1),
     advancing the progress ``bar`` (or None) as they go."""
     if n_jobs == 1:
@@ -608,8 +664,10 @@ def _run_chains(posterior: SkinPosterior, inits: list[np.ndarray], inverse_mass:
     ctx = mp.get_context("spawn")
     with ctx.Manager() as manager, ProcessPoolExecutor(n_jobs, mp_context=ctx) as pool:
         queue = manager.Queue()  # (chain, iterations) every 50 iterations of a chain
-        futures = [pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], queue, c)
-                   for c in range(len(inits))]
+        futures = [
+            pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], queue, c)
+            for c in range(len(inits))
+        ]
         pending = futures
         while pending:
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_EXCEPTION)
@@ -677,8 +735,9 @@ def sample_posterior(
     return samples
 
 
-def write_outputs(samples: PosteriorSamples, out: Path | str,
-                  observations: list[str] | None = None) -> PosteriorSummary:
+def write_outputs(
+    samples: PosteriorSamples, out: Path | str, observations: list[str] | None = None
+) -> PosteriorSummary:
     """posterior.nc, summary.json and corner.png into the folder ``out`` (written under a
     temporary name and renamed, so a folder with a summary.json is complete); returns the summary
     (``observations``: the sources of the observations, recorded in it)."""

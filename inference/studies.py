@@ -34,15 +34,29 @@ class SamplerSettings:
 
 
 def posterior_of(
-    emulator: Emulator, observations: list[Observation], settings: SamplerSettings, out: Path | None,
+    emulator: Emulator,
+    observations: list[Observation],
+    settings: SamplerSettings,
+    out: Path | None,
     noise: str = "halfcauchy",
 ) -> PosteriorSummary:
     """Sample one posterior; write its outputs to ``out`` if given. Returns the summary."""
-    posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), noise=noise,
-                              gp_variance=settings.gp_variance, emulator_error=settings.emulator_error)
-    samples = sample_posterior(posterior, chains=settings.chains, warmup=settings.warmup,
-                               draws=settings.draws, seed=settings.seed, n_jobs=settings.n_jobs,
-                               progress=settings.progress)
+    posterior = SkinPosterior(
+        emulator,
+        ObservedWeights.project(emulator, observations),
+        noise=noise,
+        gp_variance=settings.gp_variance,
+        emulator_error=settings.emulator_error,
+    )
+    samples = sample_posterior(
+        posterior,
+        chains=settings.chains,
+        warmup=settings.warmup,
+        draws=settings.draws,
+        seed=settings.seed,
+        n_jobs=settings.n_jobs,
+        progress=settings.progress,
+    )
     sources = [o.source for o in observations]
     if out is None:
         return samples.summary(sources)
@@ -79,8 +93,12 @@ def test_set_study(
     width = {n: float(np.median([s.parameters[n].interval_share_of_prior for s in summaries])) for n in names}
     identified = {n: bool(coverage[n] >= 0.8 and width[n] < 0.5) for n in names}
     label = label or f"designs {designs}, frames {frames}"
-    accuracy_plot(summaries, emulator.param_bounds, out / "accuracy.png",
-                  f"{label}: posterior median and 95 % interval vs truth ({len(summaries)} test materials)")
+    accuracy_plot(
+        summaries,
+        emulator.param_bounds,
+        out / "accuracy.png",
+        f"{label}: posterior median and 95 % interval vs truth ({len(summaries)} test materials)",
+    )
     result = {
         "setup": {"designs": designs, "frames": frames, "label": label},
         "materials": [int(i) for i in materials],
@@ -185,21 +203,35 @@ def noise_study(
             # on noisy fields would retain hundreds of noise components
             fit_options = {**fit_options, "n_components": max(emulator.n_weights.values())}
         report, _ = validate(emulator, case_data)
-        study = test_set_study(emulator, case_data, [design], [-1], settings, folder / "posteriors",
-                               materials, label=f"{name}: design {design}")
+        study = test_set_study(
+            emulator,
+            case_data,
+            [design],
+            [-1],
+            settings,
+            folder / "posteriors",
+            materials,
+            label=f"{name}: design {design}",
+        )
         results[name] = {
             "data": str(path),
             "noise": None if noise is None else {"length_mm": noise[0], "level": noise[1]},
-            "explained_variance": {c: np.cumsum(p.explained_variance_ratio_)[:12].tolist()
-                                   for c, p in emulator.pcas.items()},
+            "explained_variance": {
+                c: np.cumsum(p.explained_variance_ratio_)[:12].tolist() for c, p in emulator.pcas.items()
+            },
             "n_components": emulator.n_weights,
             "r2_per_pc": {c: list(r.r2_per_pc) for c, r in report.components.items()},
             "study": study,
         }
     write_text(out / "noise_study.json", json.dumps(results, indent=2) + "\n")
     explained_variance_plot(results, out / "explained_variance.png")
-    sensitivity_maps(out, ["clean", case_name(lengths[min(1, len(lengths) - 1)], levels[0])], design,
-                     data.designs[design], out / "sensitivity.png")
+    sensitivity_maps(
+        out,
+        ["clean", case_name(lengths[min(1, len(lengths) - 1)], levels[0])],
+        design,
+        data.designs[design],
+        out / "sensitivity.png",
+    )
     write_noise_report(results, out)
     return results
 
@@ -242,8 +274,13 @@ def explained_variance_plot(results: dict, path: Path) -> Path:
                 style = {"color": "k", "ls": "-", "marker": "o", "lw": 2.0, "label": name}
             else:
                 ls, marker = styles[lengths.index(case["length_mm"]) % len(styles)]
-                style = {"color": colours[levels.index(case["level"])], "ls": ls, "marker": marker, "lw": 1.4,
-                         "label": f"{name}: ℓ = {case['length_mm']:g} mm, level {case['level'] * 100:g} %"}
+                style = {
+                    "color": colours[levels.index(case["level"])],
+                    "ls": ls,
+                    "marker": marker,
+                    "lw": 1.4,
+                    "label": f"{name}: ℓ = {case['length_mm']:g} mm, level {case['level'] * 100:g} %",
+                }
             ax.plot(np.arange(1, len(ev) + 1) + dx, ev, ms=4, **style)
         ax.axhline(0.99, color="0.5", ls="--", lw=0.8, label="99 %")
         ax.set_xlabel("number of principal components M")
@@ -252,13 +289,18 @@ def explained_variance_plot(results: dict, path: Path) -> Path:
         ax.set_ylim(max(0.0, lowest - 0.03), 1.005)
         ax.set_title(f"E_{c}", fontsize=10)
         ax.grid(alpha=0.3)
-    axes[0, -1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0,
-                       title="case (noise length ℓ, level)", title_fontsize=8)
+    axes[0, -1].legend(
+        fontsize=8,
+        loc="upper left",
+        bbox_to_anchor=(1.02, 1.0),
+        borderaxespad=0,
+        title="case (noise length ℓ, level)",
+        title_fontsize=8,
+    )
     return save_figure(fig, path, dpi=120)
 
 
-def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray, path: Path,
-                     n: int = 41) -> Path:
+def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray, path: Path, n: int = 41) -> Path:
     """First two PC weights of E_xx over (mu, k1), other parameters at the box centre, for two
     cases (the paper's Fig. 10: noise flattens the map, hence less identifiability)."""
     plt = pyplot()
@@ -288,32 +330,55 @@ def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray
 def write_noise_report(results: dict, out: Path) -> Path:
     """``<out>/README.md``: figures, R² tables, identification table next to the paper's findings."""
     names = list(LABELS)
-    lines = ["# Noise study", "",
-             "Each case adds zero-mean GP noise (RBF kernel, length scale ℓ, amplitude = level × max |strain| "
-             "of the training data) to every frame, refits PCA and GPs on the training materials only and "
-             "samples the posterior of every test material from the last frame of one design. Noisy cases "
-             "keep the clean case's number of PCs M, so the explained variance at M shows what noise takes.", "",
-             "![explained variance](explained_variance.png)", "", "## GP R² per PC on held-out materials", ""]
+    lines = [
+        "# Noise study",
+        "",
+        "Each case adds zero-mean GP noise (RBF kernel, length scale ℓ, amplitude = level × max |strain| "
+        "of the training data) to every frame, refits PCA and GPs on the training materials only and "
+        "samples the posterior of every test material from the last frame of one design. Noisy cases "
+        "keep the clean case's number of PCs M, so the explained variance at M shows what noise takes.",
+        "",
+        "![explained variance](explained_variance.png)",
+        "",
+        "## GP R² per PC on held-out materials",
+        "",
+    ]
     for c in next(iter(results.values()))["r2_per_pc"]:
         width = max(len(r["r2_per_pc"][c]) for r in results.values())
-        lines += [f"**E_{c}**", "", "| case | M | " + " | ".join(f"PC{k + 1}" for k in range(width)) + " |",
-                  "|---|---|" + "---|" * width]
+        lines += [
+            f"**E_{c}**",
+            "",
+            "| case | M | " + " | ".join(f"PC{k + 1}" for k in range(width)) + " |",
+            "|---|---|" + "---|" * width,
+        ]
         for name, r in results.items():
             vals = r["r2_per_pc"][c]
-            lines.append(f"| {name} | {len(vals)} | " + " | ".join(f"{v:.3f}" for v in vals)
-                         + " |" + " |" * (width - len(vals)))
+            lines.append(
+                f"| {name} | {len(vals)} | " + " | ".join(f"{v:.3f}" for v in vals) + " |" + " |" * (width - len(vals))
+            )
         lines.append("")
-    lines += ["## Which parameters are identified", "",
-              "Identified = the 95 % interval covers the truth for ≥ 80 % of the test materials and its median "
-              "width is < 50 % of the prior range. Cells: coverage / median width share.", "",
-              "| case | " + " | ".join(LABELS[n] for n in names) + " | identified |", "|---|" + "---|" * 6]
+    lines += [
+        "## Which parameters are identified",
+        "",
+        "Identified = the 95 % interval covers the truth for ≥ 80 % of the test materials and its median "
+        "width is < 50 % of the prior range. Cells: coverage / median width share.",
+        "",
+        "| case | " + " | ".join(LABELS[n] for n in names) + " | identified |",
+        "|---|" + "---|" * 6,
+    ]
     for name, r in results.items():
         s = r["study"]
         cells = [f"{s['coverage_95'][n]:.0%} / {s['median_interval_share_of_prior'][n]:.2f}" for n in names]
         ident = ", ".join(LABELS[n].split(" ")[0] for n in names if s["identified"][n]) or "none"
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {ident} |")
-    lines += ["", "Paper (noiseless): " + PAPER_FINDINGS["noiseless"] + ".",
-              "Paper (noise): " + PAPER_FINDINGS["noise"] + ".", "",
-              "Accuracy plots: `cases/<case>/posteriors/accuracy.png`. Sensitivity of the PC weights over (μ, k₁):",
-              "", "![sensitivity](sensitivity.png)", ""]
+    lines += [
+        "",
+        "Paper (noiseless): " + PAPER_FINDINGS["noiseless"] + ".",
+        "Paper (noise): " + PAPER_FINDINGS["noise"] + ".",
+        "",
+        "Accuracy plots: `cases/<case>/posteriors/accuracy.png`. Sensitivity of the PC weights over (μ, k₁):",
+        "",
+        "![sensitivity](sensitivity.png)",
+        "",
+    ]
     return write_text(out / "README.md", "\n".join(lines))

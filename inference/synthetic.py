@@ -45,8 +45,9 @@ class StiffInclusion(Effect):
         terms.skin_stiffness = terms.skin_stiffness * (1 + (self.ratio - 1) * inside)
 
 
-def dic_points(extent: float, step: float, rng: np.random.Generator, jitter: float = 0.25,
-               holes: int = 3, hole_radius: float = 2.5) -> np.ndarray:
+def dic_points(
+    extent: float, step: float, rng: np.random.Generator, jitter: float = 0.25, holes: int = 3, hole_radius: float = 2.5
+) -> np.ndarray:
     """(n, 2) a DIC-like point cloud [mm]: a grid of ``step`` over |x|, |y| <= extent, each
     point moved by up to ``jitter`` steps, with ``holes`` circular gaps (lost subsets)."""
     g = np.arange(-extent, extent + 1e-9, step)
@@ -57,10 +58,17 @@ def dic_points(extent: float, step: float, rng: np.random.Generator, jitter: flo
     return xy
 
 
-def measured_fields(config: Config, params: SkinParams, designs: list[tuple[float, float]], points: np.ndarray,
-                    effects: dict[str, float] | None = None, mesh_dir: Path | str = "meshes",
-                    increments: int | None = None, gauge: StrainGauge = StrainGauge(),
-                    defects: Sequence[Effect] = ()) -> list[np.ndarray]:
+def measured_fields(
+    config: Config,
+    params: SkinParams,
+    designs: list[tuple[float, float]],
+    points: np.ndarray,
+    effects: dict[str, float] | None = None,
+    mesh_dir: Path | str = "meshes",
+    increments: int | None = None,
+    gauge: StrainGauge = StrainGauge(),
+    defects: Sequence[Effect] = (),
+) -> list[np.ndarray]:
     """Noise-free DIC strain (n, 3) at ``points`` (n, 2) [mm], last frame, one per design.
 
     Args:
@@ -84,23 +92,41 @@ def measured_fields(config: Config, params: SkinParams, designs: list[tuple[floa
     return fields
 
 
-def write_noisy(fields: list[np.ndarray], points: np.ndarray, designs: list[tuple[float, float]], noise: NoiseModel,
-                out: Path | str, seed: int) -> list[Path]:
+def write_noisy(
+    fields: list[np.ndarray],
+    points: np.ndarray,
+    designs: list[tuple[float, float]],
+    noise: NoiseModel,
+    out: Path | str,
+    seed: int,
+) -> list[Path]:
     """Add noise drawn from ``noise`` (seeded) and write ``out/m_<j>.csv`` with sd columns."""
     rng = np.random.default_rng(seed)
     paths = []
     for j, (field, alpha) in enumerate(zip(fields, designs)):
         noisy = field + noise.sample(points, (), rng)
-        paths.append(write_measurement(Path(out) / f"m_{j}.csv", points, noisy, alpha, 1.0,
-                                       np.broadcast_to(noise.sd, noisy.shape)))
+        paths.append(
+            write_measurement(
+                Path(out) / f"m_{j}.csv", points, noisy, alpha, 1.0, np.broadcast_to(noise.sd, noisy.shape)
+            )
+        )
     return paths
 
 
-def synthetic_measurements(config: Config, params: SkinParams, designs: list[tuple[float, float]], noise: NoiseModel,
-                           out: Path | str, effects: dict[str, float] | None = None, seed: int = 0,
-                           mesh_dir: Path | str = "meshes", increments: int | None = None,
-                           points: np.ndarray | None = None, gauge: StrainGauge = StrainGauge(),
-                           defects: Sequence[Effect] = ()) -> list[Path]:
+def synthetic_measurements(
+    config: Config,
+    params: SkinParams,
+    designs: list[tuple[float, float]],
+    noise: NoiseModel,
+    out: Path | str,
+    effects: dict[str, float] | None = None,
+    seed: int = 0,
+    mesh_dir: Path | str = "meshes",
+    increments: int | None = None,
+    points: np.ndarray | None = None,
+    gauge: StrainGauge = StrainGauge(),
+    defects: Sequence[Effect] = (),
+) -> list[Path]:
     """Write one measurement CSV (last frame, t = 1) per design: ``out/m_<j>.csv``.
 
     The fields of :func:`measured_fields` plus noise drawn from ``noise`` (its sd is written

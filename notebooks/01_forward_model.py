@@ -62,8 +62,14 @@ print(f"{len(frames.t)} frames in {frames.seconds:.1f} s; Newton iterations {fra
 E = frames.strain[-1]
 centre = np.argmin(np.linalg.norm(frames.xy, axis=1))
 print(f"centre E_xx = {E[centre, 0]:.4f} (ln 1.05 = {np.log(1.05):.4f}), E_yy = {E[centre, 1]:.4f}")
-strain_maps(frames.xy, [E[:, 0], E[:, 1], E[:, 2]], ["E_xx", "E_yy", "E_xy"], out / "mixed.png",
-            theta_deg=params.theta, suptitle="mixed membrane (0.05, −0.05), t = 1")
+strain_maps(
+    frames.xy,
+    [E[:, 0], E[:, 1], E[:, 2]],
+    ["E_xx", "E_yy", "E_xy"],
+    out / "mixed.png",
+    theta_deg=params.theta,
+    suptitle="mixed membrane (0.05, −0.05), t = 1",
+)
 
 # %% [markdown]
 # ![strain maps](../out/notebooks/01/mixed.png)

@@ -52,10 +52,10 @@ for name, observations in setups.items():
     path = out / f"corner_{name.replace(' ', '_')}.png"
     corner_plot(samples, path, title=f"{name}: posterior (blue) vs prior (grey), truth red")
     table = samples.summary().parameters
-    widths[name] = {n: (e.q97_5 - e.q2_5) / np.ptp(emulator.param_bounds[i])
-                    for i, (n, e) in enumerate(table.items()) if i < 5}
-    print(f"{name:>13}: 95 % interval / prior width",
-          {n: round(w, 2) for n, w in widths[name].items()})
+    widths[name] = {
+        n: (e.q97_5 - e.q2_5) / np.ptp(emulator.param_bounds[i]) for i, (n, e) in enumerate(table.items()) if i < 5
+    }
+    print(f"{name:>13}: 95 % interval / prior width", {n: round(w, 2) for n, w in widths[name].items()})
 
 # %% [markdown]
 # ![single](../out/notebooks/03/corner_single_frame.png)

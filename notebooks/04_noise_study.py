@@ -39,8 +39,14 @@ out.mkdir(parents=True, exist_ok=True)
 rng = np.random.default_rng(0)
 amplitude = noise_amplitude(data, 0.05)
 fields = [noise_fields(correlation_factor(data.xy, length), amplitude, (), rng)[:, 0] for length in (1.0, 5.0)]
-strain_maps(data.xy, fields, ["noise E_xx, ℓ = 1 mm", "noise E_xx, ℓ = 5 mm"], out / "noise_fields.png",
-            window=25.0, suptitle="5 % correlated noise")
+strain_maps(
+    data.xy,
+    fields,
+    ["noise E_xx, ℓ = 1 mm", "noise E_xx, ℓ = 5 mm"],
+    out / "noise_fields.png",
+    window=25.0,
+    suptitle="5 % correlated noise",
+)
 print("amplitude per component:", amplitude)
 
 # %% [markdown]

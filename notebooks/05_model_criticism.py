@@ -60,8 +60,17 @@ for name, cls in EFFECTS.items():
 truth = SkinParams(mu=0.0012, k1=0.017, k2=11.0, kappa=0.285, theta=30.0)
 hidden = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
 noise = NoiseModel(sd=np.full(3, 2e-4), length=2.0, nugget=0.3)
-files = synthetic_measurements(config, truth, [(0.05, 0.05), (0.05, -0.05)], noise, out / "measurements",
-                               hidden, seed=5, mesh_dir=mesh_dir, increments=2)
+files = synthetic_measurements(
+    config,
+    truth,
+    [(0.05, 0.05), (0.05, -0.05)],
+    noise,
+    out / "measurements",
+    hidden,
+    seed=5,
+    mesh_dir=mesh_dir,
+    increments=2,
+)
 print(*files, sep="\n")
 
 # %% [markdown]
@@ -75,10 +84,31 @@ print(*files, sep="\n")
 # %%
 skinid = [sys.executable, "-m", "skinfem.cli"]
 mpirun = shutil.which("mpirun", path=str(Path(sys.executable).parent))
-cmd = skinid + ["check", "--emulator", str(emulator_dir), "--measurement", *map(str, files),
-                "--out", str(out / "report"), "--noise-length", "2", "--noise-nugget", "0.3",
-                "--add", "pre_stretch", "--increments", "2", "--confirm", "1", "--mesh-dir", str(mesh_dir),
-                "--spacing", "2", "--no-discretisation", "--force"]  # --force: rerunning replaces the report
+cmd = skinid + [
+    "check",
+    "--emulator",
+    str(emulator_dir),
+    "--measurement",
+    *map(str, files),
+    "--out",
+    str(out / "report"),
+    "--noise-length",
+    "2",
+    "--noise-nugget",
+    "0.3",
+    "--add",
+    "pre_stretch",
+    "--increments",
+    "2",
+    "--confirm",
+    "1",
+    "--mesh-dir",
+    str(mesh_dir),
+    "--spacing",
+    "2",
+    "--no-discretisation",
+    "--force",
+]  # --force: rerunning replaces the report
 run = subprocess.run(([mpirun, "-n", "2"] if mpirun else []) + cmd, capture_output=True, text=True)
 print(run.stdout[-3000:] or run.stderr[-3000:])
 run.check_returncode()
@@ -110,8 +140,10 @@ for r in report["regions"]:
 
 # %%
 for c in report["candidates"]:
-    print(f"{c['effect']:>17}: dBIC {c['delta_bic']:+9.1f}, share {c['share_explained']:.0%}, "
-          f"confounding {c['confounding']:.0%}, explains: {c['explains']}")
+    print(
+        f"{c['effect']:>17}: dBIC {c['delta_bic']:+9.1f}, share {c['share_explained']:.0%}, "
+        f"confounding {c['confounding']:.0%}, explains: {c['explains']}"
+    )
 print("\n" + report["verdict"])
 
 # %% [markdown]
@@ -122,12 +154,16 @@ print("\n" + report["verdict"])
 # %%
 for v in report["versions"]:
     m = v["metrics"]
-    print(f"{v['label']:>24}: RMSE {m['rmse']:.2e} (noise {m['noise_rms']:.1e}), chi2/dof {m['chi2_per_dof']:.2f}, "
-          f"consistent with noise: {not m['structured']}")
+    print(
+        f"{v['label']:>24}: RMSE {m['rmse']:.2e} (noise {m['noise_rms']:.1e}), chi2/dof {m['chi2_per_dof']:.2f}, "
+        f"consistent with noise: {not m['structured']}"
+    )
 final = report["versions"][-1]["estimates"]
 print("skin parameters, truth vs baseline vs + pre_stretch:")
 for i, n in enumerate(("mu", "k1", "k2", "kappa", "theta")):
-    print(f"{n:>6}: {truth.as_array()[i]:.4g}  {report['versions'][0]['estimates'][n]['value']:.4g}  "
-          f"{final[n]['value']:.4g} ± {final[n]['sd']:.2g}")
+    print(
+        f"{n:>6}: {truth.as_array()[i]:.4g}  {report['versions'][0]['estimates'][n]['value']:.4g}  "
+        f"{final[n]['value']:.4g} ± {final[n]['sd']:.2g}"
+    )
 assert report["candidates"][0]["effect"] == "pre_stretch"
 assert not report["versions"][-1]["metrics"]["structured"]

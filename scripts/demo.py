@@ -44,8 +44,9 @@ def overview(out: Path, top: Path, bottom: list[Path]) -> Path:
     bottom_height = width / sum(ratios)
     top_height = width * top_image.shape[0] / top_image.shape[1]
     fig = plt.figure(figsize=(width, top_height + bottom_height))
-    grid = fig.add_gridspec(2, len(images), height_ratios=[top_height, bottom_height], width_ratios=ratios,
-                            hspace=0.02, wspace=0.02)
+    grid = fig.add_gridspec(
+        2, len(images), height_ratios=[top_height, bottom_height], width_ratios=ratios, hspace=0.02, wspace=0.02
+    )
     ax = fig.add_subplot(grid[0, :])
     ax.imshow(top_image)
     ax.axis("off")
@@ -79,12 +80,36 @@ def hidden_prestretch_check(out: Path, emu: Path, truth: np.ndarray) -> dict:
     check = out / "check"
     if not (check / "report.json").exists():
         hidden = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
-        files = synthetic_measurements(load_config("small"), SkinParams.from_array(truth),
-                                       [(0.05, 0.05), (0.05, -0.05)], NoiseModel(np.full(3, 2e-4), 2.0, 0.3),
-                                       out / "measurements", hidden, seed=1, increments=2)
-        cmd = ["check", "--emulator", str(emu), "--measurement", *map(str, files), "--out", str(check),
-               "--noise-length", "2", "--noise-nugget", "0.3", "--add", "pre_stretch", "--increments", "2",
-               "--spacing", "2", "--no-discretisation"]  # data from the checked mesh: its model is exact
+        files = synthetic_measurements(
+            load_config("small"),
+            SkinParams.from_array(truth),
+            [(0.05, 0.05), (0.05, -0.05)],
+            NoiseModel(np.full(3, 2e-4), 2.0, 0.3),
+            out / "measurements",
+            hidden,
+            seed=1,
+            increments=2,
+        )
+        cmd = [
+            "check",
+            "--emulator",
+            str(emu),
+            "--measurement",
+            *map(str, files),
+            "--out",
+            str(check),
+            "--noise-length",
+            "2",
+            "--noise-nugget",
+            "0.3",
+            "--add",
+            "pre_stretch",
+            "--increments",
+            "2",
+            "--spacing",
+            "2",
+            "--no-discretisation",
+        ]  # data from the checked mesh: its model is exact
         run_parallel(*cmd, *(["--resume"] if check.exists() else []))  # a killed check: reuse its FE runs
     return json.loads((check / "report.json").read_text())
 
@@ -114,8 +139,22 @@ def main() -> None:
 
     step(f"3/5 posterior of held-out material {material} from the mixed design (0.05, -0.05)")
     if not (post / "summary.json").exists():
-        run("infer", "--emulator", str(emu), "--data", str(data), "--material", str(material),
-            "--designs", str(mixed), "--out", str(post), "--gp-variance", "mode", "--force")
+        run(
+            "infer",
+            "--emulator",
+            str(emu),
+            "--data",
+            str(data),
+            "--material",
+            str(material),
+            "--designs",
+            str(mixed),
+            "--out",
+            str(post),
+            "--gp-variance",
+            "mode",
+            "--force",
+        )
     summary = PosteriorSummary.load(post / "summary.json")
 
     step(f"4/5 model criticism: material {material} with a hidden pre-stretch 1.08 x 1.02 at 30 deg")
@@ -126,8 +165,9 @@ def main() -> None:
     print(f"\ndemo finished in {time.perf_counter() - start:.0f} s; report: {out / 'report.md'}")
 
 
-def write_report(out: Path, dataset, emulator, material: int, mixed: int, summary: PosteriorSummary,
-                 criticism: dict) -> None:
+def write_report(
+    out: Path, dataset, emulator, material: int, mixed: int, summary: PosteriorSummary, criticism: dict
+) -> None:
     """report.md with the strain maps, the posterior table and the criticism's verdict, and the
     README's overview figure."""
     from inference.plots import strain_maps
@@ -136,14 +176,19 @@ def write_report(out: Path, dataset, emulator, material: int, mixed: int, summar
     fe = dataset.strain(material, mixed, -1)
     median = np.array([summary.parameters[n].median for n in ("mu", "k1", "k2", "kappa", "theta")])
     pred = emulator.predict_fields(median[None], dataset.designs[mixed], 1.0)[0]
-    strain_maps(dataset.xy, [fe[:, 0], fe[:, 1], pred[:, 0] - fe[:, 0], pred[:, 1] - fe[:, 1]],
-                ["FE E_xx", "FE E_yy", "E_xx: emulator − FE", "E_yy: emulator − FE"],
-                out / "strain_maps.png", theta_deg=float(truth[4]),
-                suptitle=f"material {material}, design (0.05, −0.05), t = 1")
+    strain_maps(
+        dataset.xy,
+        [fe[:, 0], fe[:, 1], pred[:, 0] - fe[:, 0], pred[:, 1] - fe[:, 1]],
+        ["FE E_xx", "FE E_yy", "E_xx: emulator − FE", "E_yy: emulator − FE"],
+        out / "strain_maps.png",
+        theta_deg=float(truth[4]),
+        suptitle=f"material {material}, design (0.05, −0.05), t = 1",
+    )
     rows = "\n".join(
         f"| {n} | {e.true:.4g} | {e.median:.4g} | [{e.q2_5:.4g}, {e.q97_5:.4g}] | "
         f"{'yes' if e.covered else 'no'} | {e.r_hat:.3f} | {e.ess:.0f} |"
-        for n, e in summary.parameters.items() if e.true is not None
+        for n, e in summary.parameters.items()
+        if e.true is not None
     )
     val = ValidationReport.load(out / "emulator" / "validation.json").components
     versions = "\n".join(
@@ -151,11 +196,19 @@ def write_report(out: Path, dataset, emulator, material: int, mixed: int, summar
         f"{v['metrics']['ppc_p']:.3f} | {'no' if v['metrics']['structured'] else 'yes'} |"
         for v in criticism["versions"]
     )
-    (out / "report.md").write_text(REPORT.format(
-        data=dataset.path.name, cells=dataset.xy.shape[0], n_weights=emulator.n_weights,
-        r2_xx=", ".join(f"{v:.4f}" for v in val["xx"].r2_per_pc),
-        r2_yy=", ".join(f"{v:.4f}" for v in val["yy"].r2_per_pc),
-        material=material, rows=rows, verdict=criticism["verdict"], versions=versions))
+    (out / "report.md").write_text(
+        REPORT.format(
+            data=dataset.path.name,
+            cells=dataset.xy.shape[0],
+            n_weights=emulator.n_weights,
+            r2_xx=", ".join(f"{v:.4f}" for v in val["xx"].r2_per_pc),
+            r2_yy=", ".join(f"{v:.4f}" for v in val["yy"].r2_per_pc),
+            material=material,
+            rows=rows,
+            verdict=criticism["verdict"],
+            versions=versions,
+        )
+    )
     check = out / "check"
     overview(out, out / "strain_maps.png", [check / "regions.png", check / "error_falls.png"])
 

@@ -19,8 +19,9 @@ from skinfem.mesh import DEFAULT_MESH_DIR
 
 
 def _add_config(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default="small",
-                        help="TOML file or built-in preset (small, study, paper, converged)")
+    parser.add_argument(
+        "--config", default="small", help="TOML file or built-in preset (small, study, paper, converged)"
+    )
     parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
 
 
@@ -37,17 +38,21 @@ def build_parser() -> argparse.ArgumentParser:
     units = {"mu": "MPa", "k1": "MPa", "k2": "-", "kappa": "-", "theta": "deg"}
     for name in PARAM_NAMES:
         p.add_argument(f"--{name}", type=float, required=True, help=f"skin {name} [{units[name]}]")
-    p.add_argument("--alpha", type=float, nargs=2, required=True, metavar=("A11", "A22"),
-                   help="the membrane design: eigen-strains along x and y")
+    p.add_argument(
+        "--alpha",
+        type=float,
+        nargs=2,
+        required=True,
+        metavar=("A11", "A22"),
+        help="the membrane design: eigen-strains along x and y",
+    )
     add_output(p, "output dataset (.h5)", replaces="--out and --fields")
     p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf and its .h5; not the --out name)")
 
     p = sub.add_parser("sweep", help="Latin hypercube x designs -> dataset (.h5), resumable")
     _add_config(p)
     add_output(p, "output dataset (.h5)", resumable=True)
-    p.add_argument(
-        "--retry-failed", action="store_true", help="with --resume: rerun failed simulations"
-    )
+    p.add_argument("--retry-failed", action="store_true", help="with --resume: rerun failed simulations")
     p.add_argument("--shard", default="0/1", help="run shard i of n (0 <= i < n), e.g. 3/16")
     p.add_argument("--ranks-per-sim", type=int, default=1, help="MPI ranks per simulation")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -71,8 +76,7 @@ def cmd_mesh(args, comm) -> int:
         if args.force or not path.exists():
             info = build_mesh(config, check_writable(path))
             print(
-                f"wrote {info.path}: {info.n_cells} hexahedra ({info.n_skin_cells} in the skin), "
-                f"{info.n_nodes} nodes"
+                f"wrote {info.path}: {info.n_cells} hexahedra ({info.n_skin_cells} in the skin), {info.n_nodes} nodes"
             )
         else:
             print(f"{path} exists (use --force to regenerate)")
@@ -91,8 +95,9 @@ def check_simulate_outputs(args) -> None:
         return
     for path in field_files(args.fields):
         if path.resolve() == args.out.resolve():
-            raise ValueError(f"--fields {args.fields} writes its data to {path}, the --out file; "
-                             "give --fields another name")
+            raise ValueError(
+                f"--fields {args.fields} writes its data to {path}, the --out file; give --fields another name"
+            )
         check_output(path, args.force)
 
 
@@ -126,9 +131,7 @@ def cmd_simulate(args, comm) -> int:
             split=np.zeros(1),
             mesh_sha256=model.mesh_sha256,
         )
-        write_simulation(
-            tmp, 0, 0, frames.strain, STATUS_OK, "", sum(frames.newton_iterations), frames.seconds
-        )
+        write_simulation(tmp, 0, 0, frames.strain, STATUS_OK, "", sum(frames.newton_iterations), frames.seconds)
 
     write_atomically(args.out, write)
     last = frames.strain[-1]
@@ -137,8 +140,7 @@ def cmd_simulate(args, comm) -> int:
         f"({comm.size} rank{'s' if comm.size > 1 else ''}; Newton iterations per increment "
         f"{frames.newton_iterations}, cut-backs {frames.cutbacks})\n"
         f"max |E_xx| = {np.abs(last[:, 0]).max():.4f}, max |E_yy| = {np.abs(last[:, 1]).max():.4f} "
-        f"over {len(last)} skin cells\nwrote {args.out}"
-        + (f" and {writer.path}" if writer else "")
+        f"over {len(last)} skin cells\nwrote {args.out}" + (f" and {writer.path}" if writer else "")
     )
     return 0
 

@@ -65,28 +65,31 @@ class _DeprecatedSpelling(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
-def add_output(parser: argparse.ArgumentParser, what: str, *, resumable: bool = False,
-               replaces: str = "--out") -> None:
+def add_output(parser: argparse.ArgumentParser, what: str, *, resumable: bool = False, replaces: str = "--out") -> None:
     """``--out`` (``what`` it is) and ``--force``; also ``--resume`` for an output that keeps
     finished work (see :mod:`skinfem.outputs`)."""
     parser.add_argument("--out", type=Path, required=True, help=what)
-    parser.add_argument("--force", action="store_true",
-                        help=f"replace an existing {replaces}" + (" (start over)" if resumable else ""))
+    parser.add_argument(
+        "--force", action="store_true", help=f"replace an existing {replaces}" + (" (start over)" if resumable else "")
+    )
     if resumable:
-        parser.add_argument("--resume", action="store_true",
-                            help="complete an existing --out, reusing its finished work")
+        parser.add_argument(
+            "--resume", action="store_true", help="complete an existing --out, reusing its finished work"
+        )
 
 
-def add_renamed_option(parser: argparse.ArgumentParser, name: str, *, old: str, required: bool = False,
-                       **kwargs) -> None:
+def add_renamed_option(
+    parser: argparse.ArgumentParser, name: str, *, old: str, required: bool = False, **kwargs
+) -> None:
     """Add the option ``name`` and its former spelling ``old`` as a hidden deprecated alias.
 
     ``required`` applies to the pair: either spelling satisfies it.
     """
     group = parser.add_mutually_exclusive_group(required=required)
     action = group.add_argument(name, **kwargs)
-    group.add_argument(old, dest=action.dest, type=action.type, nargs=action.nargs, action=_DeprecatedSpelling,
-                       new=name)
+    group.add_argument(
+        old, dest=action.dest, type=action.type, nargs=action.nargs, action=_DeprecatedSpelling, new=name
+    )
 
 
 def refuse(prog: str, exc: BaseException, show: bool = True) -> int:

@@ -66,8 +66,11 @@ class MeshConfig:
             value = getattr(self, f.name)
             if f.name != "h_edge":
                 _check(value > 0, f"{prefix}.{f.name}", f"must be > 0, got {value}")
-        _check(0 <= self.h_edge <= self.h_membrane, f"{prefix}.h_edge",
-               f"must be 0 (no edge refinement) or in (0, mesh.h_membrane], got {self.h_edge}")
+        _check(
+            0 <= self.h_edge <= self.h_membrane,
+            f"{prefix}.h_edge",
+            f"must be 0 (no edge refinement) or in (0, mesh.h_membrane], got {self.h_edge}",
+        )
         _check(
             self.membrane_size < self.length,
             f"{prefix}.membrane_size",
@@ -208,8 +211,9 @@ class ObservableConfig:
     kind: str = "surface"
 
     def validate(self, prefix: str = "observable") -> None:
-        _check(self.kind in OBSERVABLES, f"{prefix}.kind",
-               f"must be one of {', '.join(OBSERVABLES)}, got {self.kind!r}")
+        _check(
+            self.kind in OBSERVABLES, f"{prefix}.kind", f"must be one of {', '.join(OBSERVABLES)}, got {self.kind!r}"
+        )
 
 
 def _default_bounds() -> dict[str, list[float]]:
@@ -265,8 +269,11 @@ class SweepConfig:
                 key,
                 "must be a pair [low, high]",
             )
-            _check(all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pair),
-                   key, f"must be two finite numbers [low, high], got {pair!r}")
+            _check(
+                all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in pair),
+                key,
+                f"must be two finite numbers [low, high], got {pair!r}",
+            )
             low, high = float(pair[0]), float(pair[1])
             _check(low <= high, key, f"low {low} > high {high}")
         from skinfem.params import Design, SkinParams  # local: params imports this module
@@ -362,9 +369,7 @@ def _build_section(section: str, values: dict[str, Any]):
     known = {f.name: f for f in fields(cls)}
     unknown = sorted(set(values) - set(known))
     if unknown:
-        raise ConfigError(
-            f"config key '{section}.{unknown[0]}': unknown key; known keys: {', '.join(known)}"
-        )
+        raise ConfigError(f"config key '{section}.{unknown[0]}': unknown key; known keys: {', '.join(known)}")
     kwargs = {}
     defaults = cls()
     for key, value in values.items():
@@ -400,9 +405,7 @@ def config_from_dict(data: dict[str, Any], name: str = "custom") -> Config:
     name = str(data.pop("name", name))
     unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
-        raise ConfigError(
-            f"config key '{unknown[0]}': unknown section; known: name, {', '.join(SECTIONS)}"
-        )
+        raise ConfigError(f"config key '{unknown[0]}': unknown section; known: name, {', '.join(SECTIONS)}")
     sections = {}
     for section, values in data.items():
         _check(isinstance(values, dict), section, "must be a table, e.g. [mesh]")

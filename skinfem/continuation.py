@@ -60,8 +60,9 @@ class Continuation:
     def states(self, design: Hashable) -> ConvergedStates:
         return self._last[design]
 
-    def predict(self, design: Hashable, x: np.ndarray, frames: Sequence[float]
-                ) -> tuple[np.ndarray | None, list[tuple[float, np.ndarray]]] | None:
+    def predict(
+        self, design: Hashable, x: np.ndarray, frames: Sequence[float]
+    ) -> tuple[np.ndarray | None, list[tuple[float, np.ndarray]]] | None:
         """(reference guess, [(t, guess)] for ``frames``) at parameters x, or None if this
         design has no converged states for these frames yet."""
         last = self._last.get(design)
@@ -98,7 +99,10 @@ def transfer(states: ConvergedStates, V_from, V_to) -> ConvergedStates:
         target.interpolate_nonmatching(source, cells, data)
         return target.x.array.copy()
 
-    sensitivities = {i: (moved(d_ref), {t: moved(d) for t, d in d_frames.items()})
-                     for i, (d_ref, d_frames) in states.sensitivities.items()}
-    return ConvergedStates(states.x.copy(), moved(states.reference),
-                           {t: moved(u) for t, u in states.frames.items()}, sensitivities)
+    sensitivities = {
+        i: (moved(d_ref), {t: moved(d) for t, d in d_frames.items()})
+        for i, (d_ref, d_frames) in states.sensitivities.items()
+    }
+    return ConvergedStates(
+        states.x.copy(), moved(states.reference), {t: moved(u) for t, u in states.frames.items()}, sensitivities
+    )

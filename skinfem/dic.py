@@ -86,8 +86,9 @@ def surface_log_strain(H: np.ndarray, H_ref: np.ndarray | None = None) -> np.nda
     return np.stack([E[:, 0, 0], E[:, 1, 1], E[:, 0, 1]], axis=1)
 
 
-def surface_log_strain_derivative(H: np.ndarray, dH: np.ndarray, H_ref: np.ndarray | None = None,
-                                  dH_ref: np.ndarray | None = None) -> np.ndarray:
+def surface_log_strain_derivative(
+    H: np.ndarray, dH: np.ndarray, H_ref: np.ndarray | None = None, dH_ref: np.ndarray | None = None
+) -> np.ndarray:
     """Directional derivative (n, 3) of :func:`surface_log_strain` along dH (and dH_ref).
 
     Exact: dF = dH A^-1 - F dA A^-1 with A = I + H_ref (in plane), dC = dF^T F + F^T dF, and the
@@ -137,12 +138,14 @@ class SurfaceStrainGauge:
         mesh = u.function_space.mesh
         tree = dolfinx.geometry.bb_tree(mesh, mesh.topology.dim)
         hits = dolfinx.geometry.compute_colliding_cells(
-            mesh, dolfinx.geometry.compute_collisions_points(tree, xyz), xyz)
+            mesh, dolfinx.geometry.compute_collisions_points(tree, xyz), xyz
+        )
         counts = np.diff(hits.offsets)
         if np.any(counts == 0):
             bad = self.points[np.flatnonzero(counts == 0)[0] // m]
-            raise ValueError(f"the DIC window ({gauge.window} mm) of point ({bad[0]:.4g}, {bad[1]:.4g}) mm leaves "
-                             "the model's mesh")
+            raise ValueError(
+                f"the DIC window ({gauge.window} mm) of point ({bad[0]:.4g}, {bad[1]:.4g}) mm leaves the model's mesh"
+            )
         self._xyz = xyz
         self._cells = hits.array[hits.offsets[:-1]].astype(np.int32)
 
@@ -162,6 +165,9 @@ class SurfaceStrainGauge:
         H = self._gradient(self.u)
         H_ref = None if self.u_ref is None else self._gradient(self.u_ref)
         du_refs = [None] * len(dus) if du_refs is None else du_refs
-        return [surface_log_strain_derivative(H, self._gradient(du), H_ref,
-                                              None if du_ref is None else self._gradient(du_ref))
-                for du, du_ref in zip(dus, du_refs, strict=True)]
+        return [
+            surface_log_strain_derivative(
+                H, self._gradient(du), H_ref, None if du_ref is None else self._gradient(du_ref)
+            )
+            for du, du_ref in zip(dus, du_refs, strict=True)
+        ]

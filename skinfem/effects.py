@@ -145,8 +145,7 @@ def prestretch_log_strain(lambda1: float, lambda2: float, direction_deg: float) 
     """The (eps_xx, eps_yy, eps_xy) of principal stretches lambda1 along ``direction_deg``."""
     e1, e2, a = math.log(lambda1), math.log(lambda2), math.radians(direction_deg)
     c, s = math.cos(a), math.sin(a)
-    return {"eps_xx": e1 * c * c + e2 * s * s, "eps_yy": e1 * s * s + e2 * c * c,
-            "eps_xy": (e1 - e2) * c * s}
+    return {"eps_xx": e1 * c * c + e2 * s * s, "eps_yy": e1 * s * s + e2 * c * c, "eps_xy": (e1 - e2) * c * s}
 
 
 class ScaledTerm(Effect):

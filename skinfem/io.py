@@ -42,8 +42,19 @@ from skinfem.outputs import remove_output
 STATUS_NOT_RUN, STATUS_OK, STATUS_FAILED = 0, 1, -1
 FORMAT_VERSION = 1
 MESSAGE_BYTES = 240  # fixed-length messages keep the file layout static
-DATASET_MEMBERS = ("params", "designs", "t", "cells/xy", "cells/volume", "strain", "status", "messages",
-                   "newton_iterations", "seconds", "split")
+DATASET_MEMBERS = (
+    "params",
+    "designs",
+    "t",
+    "cells/xy",
+    "cells/volume",
+    "strain",
+    "status",
+    "messages",
+    "newton_iterations",
+    "seconds",
+    "split",
+)
 DATASET_ATTRIBUTES = ("config", "versions", "mesh_sha256", "created")
 
 
@@ -237,7 +248,8 @@ class StrainDataset:
                     f"this skinid reads format {FORMAT_VERSION}"
                 )
             missing = [f"/{k}" for k in DATASET_MEMBERS if k not in f] + [
-                f"attribute '{k}'" for k in DATASET_ATTRIBUTES if k not in f.attrs]
+                f"attribute '{k}'" for k in DATASET_ATTRIBUTES if k not in f.attrs
+            ]
             if missing:
                 raise ValueError(f"'{path}' is not a complete skinid dataset: it has no {missing[0]}")
             p = f["params"]
@@ -286,8 +298,10 @@ class StrainDataset:
 def dataset_summary(data: StrainDataset) -> str:
     """Human-readable summary: sizes, status counts, split, strain ranges, configuration."""
     n_mat, n_des, n_frames, n_cells = data.shape
-    counts = {name: int(np.count_nonzero(data.status == code)) for name, code in
-              (("converged", STATUS_OK), ("failed", STATUS_FAILED), ("not run", STATUS_NOT_RUN))}
+    counts = {
+        name: int(np.count_nonzero(data.status == code))
+        for name, code in (("converged", STATUS_OK), ("failed", STATUS_FAILED), ("not run", STATUS_NOT_RUN))
+    }
     lines = [
         f"{data.path}: skinid dataset, config '{data.config.name}', created {data.created}, "
         f"observable: {data.observable}",
@@ -296,9 +310,9 @@ def dataset_summary(data: StrainDataset) -> str:
         "  simulations: " + ", ".join(f"{v} {k}" for k, v in counts.items()),
         f"  split: {int(np.sum(data.split == 0))} train, {int(np.sum(data.split == 1))} test "
         f"materials (test: {', '.join(map(str, np.flatnonzero(data.split)))})",
-        "  parameter box: " + ", ".join(
-            f"{n} [{lo:.4g}, {hi:.4g}] {u}"
-            for n, u, lo, hi in zip(PARAM_NAMES, PARAM_UNITS, data.lower, data.upper)
+        "  parameter box: "
+        + ", ".join(
+            f"{n} [{lo:.4g}, {hi:.4g}] {u}" for n, u, lo, hi in zip(PARAM_NAMES, PARAM_UNITS, data.lower, data.upper)
         ),
         "  designs (alpha11, alpha22): " + ", ".join(f"({a:+.3g}, {b:+.3g})" for a, b in data.designs),
     ]
@@ -310,23 +324,23 @@ def dataset_summary(data: StrainDataset) -> str:
             low = np.minimum(low, np.nanmin(block, axis=(0, 1, 2)))
             high = np.maximum(high, np.nanmax(block, axis=(0, 1, 2)))
         lines.append(
-            "  log strain range: " + ", ".join(
-                f"E_{c} [{lo:+.4f}, {hi:+.4f}]" for c, lo, hi in zip(("xx", "yy", "xy"), low, high)
-            )
+            "  log strain range: "
+            + ", ".join(f"E_{c} [{lo:+.4f}, {hi:+.4f}]" for c, lo, hi in zip(("xx", "yy", "xy"), low, high))
         )
         secs = data.seconds[ok]
         its = data.newton_iterations[ok]
         lines.append(
-            f"  per simulation: {secs.mean():.2f} s (max {secs.max():.2f} s), "
-            f"{its.mean():.1f} Newton iterations"
+            f"  per simulation: {secs.mean():.2f} s (max {secs.max():.2f} s), {its.mean():.1f} Newton iterations"
         )
     failed = np.argwhere(data.status == STATUS_FAILED)
     for i, j in failed[:5]:
         lines.append(f"  failed ({i}, {j}): {data.messages[i, j]}")
     if len(failed) > 5:
         lines.append(f"  ... and {len(failed) - 5} more failures")
-    lines.append(f"  mesh sha256 {data.mesh_sha256[:16]}..., versions: "
-                 + ", ".join(f"{k} {v}" for k, v in data.versions.items()))
+    lines.append(
+        f"  mesh sha256 {data.mesh_sha256[:16]}..., versions: "
+        + ", ".join(f"{k} {v}" for k, v in data.versions.items())
+    )
     return "\n".join(lines)
 
 

@@ -214,11 +214,15 @@ def _extrude_layers_down(gmsh, config: Config, surfaces: dict[tuple[int, int], i
     skin_out = _extrude_layers(gmsh, top_surfaces, 0, 0, -m.skin_thickness, np.full(m.skin_layers, 1.0))
     skin_bottoms = [skin_out[6 * k] for k in range(9)]
     muscle_out = _extrude_layers(gmsh, skin_bottoms, 0, 0, -m.muscle_thickness, np.full(m.muscle_layers, 1.0))
-    volumes = {"skin": [skin_out[6 * k + 1][1] for k in range(9)],
-               "muscle": [muscle_out[6 * k + 1][1] for k in range(9)], "membrane": []}
+    volumes = {
+        "skin": [skin_out[6 * k + 1][1] for k in range(9)],
+        "muscle": [muscle_out[6 * k + 1][1] for k in range(9)],
+        "membrane": [],
+    }
     if config.membrane.model == "elastic":
-        mem_out = _extrude_layers(gmsh, [(2, surfaces[(1, 1)])], 0, 0, m.membrane_thickness,
-                                  np.full(m.membrane_layers, 1.0))
+        mem_out = _extrude_layers(
+            gmsh, [(2, surfaces[(1, 1)])], 0, 0, m.membrane_thickness, np.full(m.membrane_layers, 1.0)
+        )
         volumes["membrane"] = [mem_out[1][1]]
     return volumes
 
@@ -231,8 +235,9 @@ def _tag_groups(gmsh, config: Config, surfaces: dict[tuple[int, int], int], volu
     z_bottom = -m.skin_thickness - m.muscle_thickness
 
     def surfaces_in(xmin, ymin, zmin, xmax, ymax, zmax):
-        found = gmsh.model.getEntitiesInBoundingBox(xmin - tol, ymin - tol, zmin - tol, xmax + tol, ymax + tol,
-                                                    zmax + tol, 2)
+        found = gmsh.model.getEntitiesInBoundingBox(
+            xmin - tol, ymin - tol, zmin - tol, xmax + tol, ymax + tol, zmax + tol, 2
+        )
         return [t for _, t in found]
 
     bottom = surfaces_in(-half, -half, z_bottom, half, half, z_bottom)
@@ -296,9 +301,7 @@ def read_mesh(path: Path | str, comm):
     path = Path(path)
     exists = comm.bcast(path.is_file() if comm.rank == 0 else None, root=0)
     if not exists:
-        raise FileNotFoundError(
-            f"mesh file '{path}' does not exist; create it with `skinid mesh --config <config>`"
-        )
+        raise FileNotFoundError(f"mesh file '{path}' does not exist; create it with `skinid mesh --config <config>`")
     if comm.rank != 0:
         return dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     gmsh.initialize(interruptible=False)

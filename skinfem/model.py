@@ -114,8 +114,13 @@ class SkinModel:
             null values (the baseline) and are set with :meth:`set_effects`.
     """
 
-    def __init__(self, config: Config, comm: MPI.Comm = MPI.COMM_WORLD, mesh_dir=DEFAULT_MESH_DIR,
-                 effects: Sequence[str | Effect] = ()):
+    def __init__(
+        self,
+        config: Config,
+        comm: MPI.Comm = MPI.COMM_WORLD,
+        mesh_dir=DEFAULT_MESH_DIR,
+        effects: Sequence[str | Effect] = (),
+    ):
         t0 = time.perf_counter()
         self.config = config
         self.comm = comm
@@ -148,8 +153,9 @@ class SkinModel:
         depth = config.mesh.skin_thickness / config.mesh.skin_layers
         cells = top_skin_cells(self.mesh, self.cell_tags, TAGS["skin"], depth)
         if config.observable.kind == "surface":
-            return SurfaceStrainSampler(self.u, cells, config.solver.quadrature_degree,
-                                        self.u_ref if self.effects else None)
+            return SurfaceStrainSampler(
+                self.u, cells, config.solver.quadrature_degree, self.u_ref if self.effects else None
+            )
         F_seen = ufl.Identity(3) + ufl.grad(self.u)
         if self.effects:  # the skin's gradient relative to its unloaded equilibrium
             F_seen = self._skin_gradient(terms, self.u) * ufl.inv(self._skin_gradient(terms, self.u_ref))
@@ -164,8 +170,12 @@ class SkinModel:
         """Total energy: HGO skin (with the effects' map, pre-stretch and stiffness), neo-Hookean
         muscle and, for an elastic membrane, the membrane with its eigen-strain."""
         config = self.config
-        dx = ufl.Measure("dx", domain=self.mesh, subdomain_data=self.cell_tags,
-                         metadata={"quadrature_degree": config.solver.quadrature_degree})
+        dx = ufl.Measure(
+            "dx",
+            domain=self.mesh,
+            subdomain_data=self.cell_tags,
+            metadata={"quadrature_degree": config.solver.quadrature_degree},
+        )
         F = ufl.Identity(3) + ufl.grad(self.u)
         F_elastic, weight = F, 1.0  # baseline: stress-free skin of mesh thickness
         if self.effects:
@@ -173,8 +183,20 @@ class SkinModel:
             F_elastic = self._skin_gradient(terms, self.u) * F0
             weight = terms.skin_stiffness * ufl.det(G) / ufl.det(F0)
         skin = config.skin
-        energy = weight * hgo_energy(F_elastic, self.mu, self.k1, self.k2, self.kappa, self.a0,
-                                     terms.skin_bulk_ratio * self.mu, skin.fiber_invariant) * dx(TAGS["skin"])
+        energy = (
+            weight
+            * hgo_energy(
+                F_elastic,
+                self.mu,
+                self.k1,
+                self.k2,
+                self.kappa,
+                self.a0,
+                terms.skin_bulk_ratio * self.mu,
+                skin.fiber_invariant,
+            )
+            * dx(TAGS["skin"])
+        )
         muscle_K = config.muscle.bulk_ratio * terms.muscle_mu
         energy += neo_hookean_energy(F, terms.muscle_mu, muscle_K) * dx(TAGS["muscle"])
         if self.has_membrane:
@@ -189,11 +211,21 @@ class SkinModel:
         jacobian = ufl.derivative(residual, self.u, ufl.TrialFunction(self.V))
         self._prefix = f"skinid_{id(self)}_"
         return dolfinx.fem.petsc.NonlinearProblem(
-            residual, self.u, bcs=self.bcs, J=jacobian, petsc_options_prefix=self._prefix, jit_options=JIT_OPTIONS,
+            residual,
+            self.u,
+            bcs=self.bcs,
+            J=jacobian,
+            petsc_options_prefix=self._prefix,
+            jit_options=JIT_OPTIONS,
             petsc_options={
-                "snes_type": "newtonls", "snes_linesearch_type": "basic", "snes_rtol": solver.rtol,
-                "snes_atol": solver.atol, "snes_stol": 1e-9, "snes_max_it": solver.max_iterations,
-                "pc_type": "lu", "pc_factor_mat_solver_type": "mumps",
+                "snes_type": "newtonls",
+                "snes_linesearch_type": "basic",
+                "snes_rtol": solver.rtol,
+                "snes_atol": solver.atol,
+                "snes_stol": 1e-9,
+                "snes_max_it": solver.max_iterations,
+                "pc_type": "lu",
+                "pc_factor_mat_solver_type": "mumps",
                 **(self._krylov_options(solver) if solver.refactor_krylov else {"ksp_type": "preonly"}),
             },
         )
@@ -287,9 +319,15 @@ class SkinModel:
         """GMRES on the exact tangent, preconditioned (from the right, so that GMRES measures
         the true residual in N) by a factorization kept across solves; a linear residual below
         a tenth of the Newton tolerance cannot hold up convergence."""
-        return {"ksp_type": "gmres", "ksp_pc_side": "right", "ksp_rtol": solver.krylov_rtol,
-                "ksp_atol": 0.1 * solver.atol, "ksp_gmres_restart": 100, "ksp_max_it": 100,
-                "snes_lag_preconditioner_persists": True}
+        return {
+            "ksp_type": "gmres",
+            "ksp_pc_side": "right",
+            "ksp_rtol": solver.krylov_rtol,
+            "ksp_atol": 0.1 * solver.atol,
+            "ksp_gmres_restart": 100,
+            "ksp_max_it": 100,
+            "snes_lag_preconditioner_persists": True,
+        }
 
     def _set_snes_option(self, name: str, value) -> None:
         """Set one option of this model's SNES: through the options database, which SNES rereads,
@@ -331,8 +369,9 @@ class SkinModel:
         its = snes.getIterationNumber()  # 0: converged at the start, no Jacobian built
         if reuse and policy == Factorisation.EVERY_STEP:  # lag back from 1; "never" needs a rebuild first
             self._set_lag(-2)
-        self._rebuild_pending = reuse and (policy == Factorisation.EVERY_STEP or (policy != Factorisation.REUSE
-                                                                                 and its == 0))
+        self._rebuild_pending = reuse and (
+            policy == Factorisation.EVERY_STEP or (policy != Factorisation.REUSE and its == 0)
+        )
         if not reuse or policy == Factorisation.EVERY_STEP:
             self.factorizations += its
         elif policy == Factorisation.FIRST_STEP and its > 0:
@@ -341,8 +380,9 @@ class SkinModel:
         ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
         return ok, its, snes.getLinearSolveIterations() / max(its, 1)
 
-    def _newton_escalating(self, policy: Factorisation,
-                           most: Factorisation = Factorisation.EVERY_STEP) -> tuple[bool, int, float]:
+    def _newton_escalating(
+        self, policy: Factorisation, most: Factorisation = Factorisation.EVERY_STEP
+    ) -> tuple[bool, int, float]:
         """:meth:`_newton` from the current state; after a failure once more from the same start
         with each more frequent factorisation up to ``most`` (default Newton–LU): a stale
         factorisation, or one made stale by a large first Newton step, can stall GMRES
@@ -416,8 +456,9 @@ class SkinModel:
         self.set_params(params)
         self.factorizations = 0
         self.u.x.array[:] = 0.0
-        if not self._reference_equilibrium(design, None, lambda: self._newton_escalating(Factorisation.FIRST_STEP)[0],
-                                           on_reference):
+        if not self._reference_equilibrium(
+            design, None, lambda: self._newton_escalating(Factorisation.FIRST_STEP)[0], on_reference
+        ):
             raise ConvergenceError(f"Newton failed on the unloaded pre-stressed state for {params}")
         targets = self.load_fractions()
         ramp = _Ramp(step=targets[0])
@@ -430,12 +471,23 @@ class SkinModel:
         seconds = time.perf_counter() - start
         if self.comm.rank != 0:
             return StrainFrames(targets, None, None, None, ramp.iterations, ramp.cutbacks, seconds)
-        return StrainFrames(t=targets, strain=np.stack(frames), xy=self.strain_sampler.xy,
-                            volume=self.strain_sampler.volume, newton_iterations=ramp.iterations,
-                            cutbacks=ramp.cutbacks, seconds=seconds)
+        return StrainFrames(
+            t=targets,
+            strain=np.stack(frames),
+            xy=self.strain_sampler.xy,
+            volume=self.strain_sampler.volume,
+            newton_iterations=ramp.iterations,
+            cutbacks=ramp.cutbacks,
+            seconds=seconds,
+        )
 
-    def _reference_equilibrium(self, design: Design, guess: np.ndarray | None, newton: Callable[[], bool],
-                               on_reference: Callable[[], None] | None) -> bool:
+    def _reference_equilibrium(
+        self,
+        design: Design,
+        guess: np.ndarray | None,
+        newton: Callable[[], bool],
+        on_reference: Callable[[], None] | None,
+    ) -> bool:
         """The unloaded equilibrium of a pre-stressed model into ``u_ref`` (zero otherwise), by
         ``newton()`` from ``guess`` (None: the current state). Returns whether it converged."""
         self.u_ref.x.array[:] = 0.0
@@ -478,8 +530,10 @@ class SkinModel:
             ramp.cutbacks += 1
             ramp.step /= 2
             if ramp.cutbacks > self.config.solver.max_cutbacks:
-                raise ConvergenceError(f"Newton failed at load fraction t = {t_new:.4g} for {params} and {design} "
-                                       f"after {ramp.cutbacks - 1} cut-backs")
+                raise ConvergenceError(
+                    f"Newton failed at load fraction t = {t_new:.4g} for {params} and {design} "
+                    f"after {ramp.cutbacks - 1} cut-backs"
+                )
 
     def solve_frames(
         self,

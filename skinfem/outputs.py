@@ -32,9 +32,7 @@ def check_writable(path: Path | str) -> Path:
     return path
 
 
-def check_output(
-    path: Path | str, force: bool = False, *, directory: bool = False, resume: bool | None = None
-) -> Path:
+def check_output(path: Path | str, force: bool = False, *, directory: bool = False, resume: bool | None = None) -> Path:
     """Refuse an output before any computing: it exists (without ``force``), is of the other kind
     (a folder for a file or a file for a folder), or its folder cannot be written.
 

@@ -65,8 +65,11 @@ def abort_on_uncaught(prog: str, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
         return
 
     def hook(kind, exc, tb):
-        print(f"{prog}: error on rank {comm.rank}: {_message(exc)} ({kind.__name__}); aborting all ranks",
-              file=sys.stderr, flush=True)
+        print(
+            f"{prog}: error on rank {comm.rank}: {_message(exc)} ({kind.__name__}); aborting all ranks",
+            file=sys.stderr,
+            flush=True,
+        )
         comm.Abort(1)
 
     sys.excepthook = hook

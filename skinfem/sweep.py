@@ -151,8 +151,7 @@ def _check_resumable(path: Path, config: Config, mesh_sha256: str, plan: SweepPl
     data = StrainDataset.open(path)
     if data.config.to_toml() != config.to_toml():
         raise ValueError(
-            f"'{path}' was made with another configuration; resume it with the same --config "
-            "or choose a new --out"
+            f"'{path}' was made with another configuration; resume it with the same --config or choose a new --out"
         )
     if data.mesh_sha256 != mesh_sha256:
         raise ValueError(f"'{path}' was made on another mesh (sha256 {data.mesh_sha256[:12]}...)")
@@ -190,9 +189,7 @@ def run_sweep(
     """
     out = Path(out)
     if ranks_per_sim < 1 or comm.size % ranks_per_sim:
-        raise ValueError(
-            f"--ranks-per-sim {ranks_per_sim} must divide the number of MPI ranks ({comm.size})"
-        )
+        raise ValueError(f"--ranks-per-sim {ranks_per_sim} must divide the number of MPI ranks ({comm.size})")
 
     def check_name() -> None:
         if out.suffix not in (".h5", ".hdf5"):
@@ -203,8 +200,17 @@ def run_sweep(
     _collective(comm, lambda: take_lock(out))
     try:
         _collective(comm, lambda: check_output(out, force, resume=resume))
-        return _sweep(config, out, force=force, retry_failed=retry_failed, shard=shard,
-                      ranks_per_sim=ranks_per_sim, mesh_dir=mesh_dir, comm=comm, progress=progress)
+        return _sweep(
+            config,
+            out,
+            force=force,
+            retry_failed=retry_failed,
+            shard=shard,
+            ranks_per_sim=ranks_per_sim,
+            mesh_dir=mesh_dir,
+            comm=comm,
+            progress=progress,
+        )
     finally:
         if comm.rank == 0:
             release_lock(out)
@@ -340,9 +346,21 @@ def _prepare_file(out: Path, config: Config, model, plan: SweepPlan, force: bool
         _check_resumable(out, config, model.mesh_sha256, plan)
         return
     sampler = model.strain_sampler
-    write_atomically(out, lambda tmp: create_dataset(
-        tmp, config, plan.params, plan.designs, model.load_fractions(), sampler.xy, sampler.volume, plan.split,
-        model.mesh_sha256, bounds=plan.bounds))
+    write_atomically(
+        out,
+        lambda tmp: create_dataset(
+            tmp,
+            config,
+            plan.params,
+            plan.designs,
+            model.load_fractions(),
+            sampler.xy,
+            sampler.volume,
+            plan.split,
+            model.mesh_sha256,
+            bounds=plan.bounds,
+        ),
+    )
 
 
 def merge_datasets(paths: list[Path | str], out: Path | str) -> StrainDataset:
@@ -377,8 +395,7 @@ def merge_datasets(paths: list[Path | str], out: Path | str) -> StrainDataset:
                 )
                 if not same:
                     raise ValueError(
-                        f"cannot merge: simulation ({i}, {j}) differs between "
-                        f"'{previous.path}' and '{shard.path}'"
+                        f"cannot merge: simulation ({i}, {j}) differs between '{previous.path}' and '{shard.path}'"
                     )
                 continue
             owner[i, j] = k

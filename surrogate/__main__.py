@@ -15,8 +15,9 @@ def build_parser() -> CommandParser:
     p = sub.add_parser("fit", help="fit PCA + GPs on a dataset's training materials")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
     add_output(p, "emulator directory")
-    p.add_argument("--components", nargs="+", default=["xx", "yy"], choices=["xx", "yy", "xy"],
-                   help="strain components to emulate")
+    p.add_argument(
+        "--components", nargs="+", default=["xx", "yy"], choices=["xx", "yy", "xy"], help="strain components to emulate"
+    )
     group = p.add_mutually_exclusive_group()
     group.add_argument("--variance", type=float, default=0.99, help="explained variance to keep")
     group.add_argument("--n-components", type=int, help="fixed number of PCs per component")
@@ -26,8 +27,12 @@ def build_parser() -> CommandParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (GP rows, optimizer starts)")
     p.add_argument("--no-validate", action="store_true", help="skip validation on the test materials")
     p = sub.add_parser("validate", help="R² per PC and field errors on held-out materials")
-    p.add_argument("--emulator", type=Path, required=True,
-                   help="emulator directory (validation.json and validation.png are written into it)")
+    p.add_argument(
+        "--emulator",
+        type=Path,
+        required=True,
+        help="emulator directory (validation.json and validation.png are written into it)",
+    )
     p.add_argument("--data", type=Path, help="dataset (default: the one it was fitted on)")
     p.add_argument("--force", action="store_true", help="replace the emulator's validation if it has one")
     return parser

@@ -286,9 +286,7 @@ class Emulator:
 
     def weights_of_fields(self, fields: np.ndarray) -> np.ndarray:
         """PCA projection: fields (B, n_cells, n_comp) -> weights (B, G)."""
-        return np.concatenate(
-            [self.pcas[c].transform(fields[..., k]) for k, c in enumerate(self.components)], 1
-        )
+        return np.concatenate([self.pcas[c].transform(fields[..., k]) for k, c in enumerate(self.components)], 1)
 
     def dataset_fields(self, strain: np.ndarray) -> np.ndarray:
         """Select the modelled components from dataset strains (..., n_cells, 3)."""
@@ -384,15 +382,29 @@ def gp_rows(n_rows: int, gp_fraction: float, max_gp_rows: int | None, seed: int)
     return np.sort(np.random.default_rng(seed).choice(n_rows, n_gp, replace=False))
 
 
-def _cross_validated_excess(gps: list, rows: TrainingRows, weights: np.ndarray, box: tuple[np.ndarray, np.ndarray],
-                            subset: np.ndarray, seed: int, n_jobs: int):
+def _cross_validated_excess(
+    gps: list,
+    rows: TrainingRows,
+    weights: np.ndarray,
+    box: tuple[np.ndarray, np.ndarray],
+    subset: np.ndarray,
+    seed: int,
+    n_jobs: int,
+):
     """The held-out excess of :func:`surrogate.error_model.cross_validated_excess` over folds of
     materials, each fold's GPs refitted from the fitted kernels (``box``: the inputs' (lower, upper))."""
     lower, upper = box
     return cross_validated_excess(
-        lambda x, y: GPBank.from_sklearn(fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs,
-                                                 kernels=[g.gp.kernel_ for g in gps])),
-        (rows.inputs - lower) / (upper - lower), weights, rows.index[:, 0], rows.inputs[:, 5:], subset, seed=seed)
+        lambda x, y: GPBank.from_sklearn(
+            fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs, kernels=[g.gp.kernel_ for g in gps])
+        ),
+        (rows.inputs - lower) / (upper - lower),
+        weights,
+        rows.index[:, 0],
+        rows.inputs[:, 5:],
+        subset,
+        seed=seed,
+    )
 
 
 def fit_emulator(
@@ -435,10 +447,17 @@ def fit_emulator(
     excess = _cross_validated_excess(gps, rows, weights, (lower, upper), subset, seed, n_jobs)
     cv_seconds = time.perf_counter() - cv_start
     provenance = EmulatorProvenance(
-        dataset=data.path.resolve(), dataset_config=data.config.to_toml(), mesh_sha256=data.mesh_sha256,
-        block_half_length=data.config.mesh.length / 2, train_materials=tuple(train.tolist()),
-        test_materials=tuple(np.flatnonzero(data.split == 1).tolist()), n_training_rows=int(len(rows.index)),
-        n_gp_rows=len(subset), gp_fraction=gp_fraction, restarts=restarts, seed=seed,
+        dataset=data.path.resolve(),
+        dataset_config=data.config.to_toml(),
+        mesh_sha256=data.mesh_sha256,
+        block_half_length=data.config.mesh.length / 2,
+        train_materials=tuple(train.tolist()),
+        test_materials=tuple(np.flatnonzero(data.split == 1).tolist()),
+        n_training_rows=int(len(rows.index)),
+        n_gp_rows=len(subset),
+        gp_fraction=gp_fraction,
+        restarts=restarts,
+        seed=seed,
         explained_variance_ratio={c: tuple(p.explained_variance_ratio_[:20].tolist()) for c, p in pcas.items()},
         fit_seconds={"pca": pca_seconds, "held_out_excess": cv_seconds, "total": time.perf_counter() - start},
         versions={n: metadata.version(n) for n in ("skinid", "scikit-learn", "torch", "numpy")},

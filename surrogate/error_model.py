@@ -57,13 +57,19 @@ class HeldOutExcess:
     load_reference: float
 
     def to_json(self) -> dict:
-        return {"variance": list(self.variance), "z_rms": list(self.z_rms), "folds": self.folds,
-                "n_rows": self.n_rows, "load_reference": self.load_reference}
+        return {
+            "variance": list(self.variance),
+            "z_rms": list(self.z_rms),
+            "folds": self.folds,
+            "n_rows": self.n_rows,
+            "load_reference": self.load_reference,
+        }
 
     @classmethod
     def from_json(cls, entry: dict) -> HeldOutExcess:
-        return cls(tuple(entry["variance"]), tuple(entry["z_rms"]), entry["folds"], entry["n_rows"],
-                   entry["load_reference"])
+        return cls(
+            tuple(entry["variance"]), tuple(entry["z_rms"]), entry["folds"], entry["n_rows"], entry["load_reference"]
+        )
 
     def load_scale(self, design_inputs: np.ndarray) -> np.ndarray:
         """s (n,) of raw design inputs (alpha11 t, alpha22 t) (n, 2)."""
@@ -72,20 +78,26 @@ class HeldOutExcess:
 
 def excess_variance(error: np.ndarray, variance: np.ndarray, scale: np.ndarray) -> float:
     """Maximum-likelihood tau^2 >= 0 of error ~ N(0, variance + tau^2 scale^2); all (n,)."""
+
     def minus_log_likelihood(log_tau2: float) -> float:
         total = variance + np.exp(log_tau2) * scale**2
         return float(np.sum(error**2 / total + np.log(total)))
 
     at_zero = float(np.sum(error**2 / variance + np.log(variance)))
     upper = np.log(np.mean(error**2 / np.maximum(scale, 1e-3) ** 2)) + 2
-    best = minimize_scalar(minus_log_likelihood, bounds=(upper - 40, upper), method="bounded",
-                           options={"xatol": 1e-6})
+    best = minimize_scalar(minus_log_likelihood, bounds=(upper - 40, upper), method="bounded", options={"xatol": 1e-6})
     return float(np.exp(best.x)) if best.fun < at_zero else 0.0
 
 
-def cross_validated_errors(fit: Callable[[np.ndarray, np.ndarray], GPBank], x: np.ndarray, weights: np.ndarray,
-                           materials: np.ndarray, gp_subset: np.ndarray, folds: int = FOLDS,
-                           seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def cross_validated_errors(
+    fit: Callable[[np.ndarray, np.ndarray], GPBank],
+    x: np.ndarray,
+    weights: np.ndarray,
+    materials: np.ndarray,
+    gp_subset: np.ndarray,
+    folds: int = FOLDS,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Errors and GP variances (n, G) of every row predicted by GPs ``fit`` on the GP rows of
     the other folds' materials (material-wise K-fold cross-validation).
 
@@ -110,9 +122,16 @@ def cross_validated_errors(fit: Callable[[np.ndarray, np.ndarray], GPBank], x: n
     return error, variance
 
 
-def cross_validated_excess(fit: Callable[[np.ndarray, np.ndarray], GPBank], x: np.ndarray, weights: np.ndarray,
-                           materials: np.ndarray, design_inputs: np.ndarray, gp_subset: np.ndarray,
-                           folds: int = FOLDS, seed: int = 0) -> HeldOutExcess:
+def cross_validated_excess(
+    fit: Callable[[np.ndarray, np.ndarray], GPBank],
+    x: np.ndarray,
+    weights: np.ndarray,
+    materials: np.ndarray,
+    design_inputs: np.ndarray,
+    gp_subset: np.ndarray,
+    folds: int = FOLDS,
+    seed: int = 0,
+) -> HeldOutExcess:
     """The held-out excess of the GP fit (:func:`cross_validated_errors`), load-scaled.
 
     Each fold's GPs are fitted anew, hyper-parameters included (the emulator starts the

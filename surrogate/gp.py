@@ -31,9 +31,7 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
 def make_kernel(n_inputs: int):
     """Constant x ARD RBF + white noise, with bounds suited to unit-box inputs."""
-    return ConstantKernel(1.0, (1e-3, 1e3)) * RBF(
-        np.ones(n_inputs), (1e-2, 1e3)
-    ) + WhiteKernel(1e-4, (1e-10, 1e-1))
+    return ConstantKernel(1.0, (1e-3, 1e3)) * RBF(np.ones(n_inputs), (1e-2, 1e3)) + WhiteKernel(1e-4, (1e-10, 1e-1))
 
 
 def standardisation(y: np.ndarray) -> tuple[float, float]:

@@ -42,8 +42,9 @@ class ComponentValidation:
 
     def held_out_scores(self) -> HeldOutScores:
         """What ``meta.json`` records of these scores."""
-        return HeldOutScores(min_r2=self.min_r2, field_rmse=self.field_rmse,
-                             field_rmse_relative=self.field_rmse_relative)
+        return HeldOutScores(
+            min_r2=self.min_r2, field_rmse=self.field_rmse, field_rmse_relative=self.field_rmse_relative
+        )
 
     def to_json(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
@@ -63,13 +64,19 @@ class ValidationReport:
 
     def to_json(self) -> dict:
         """The content of ``validation.json``."""
-        return {"test_materials": list(self.test_materials), "n_rows": self.n_rows,
-                "components": {c: r.to_json() for c, r in self.components.items()}}
+        return {
+            "test_materials": list(self.test_materials),
+            "n_rows": self.n_rows,
+            "components": {c: r.to_json() for c, r in self.components.items()},
+        }
 
     @classmethod
     def from_json(cls, report: dict) -> ValidationReport:
-        return cls(tuple(report["test_materials"]), report["n_rows"],
-                   {c: ComponentValidation.from_json(r) for c, r in report["components"].items()})
+        return cls(
+            tuple(report["test_materials"]),
+            report["n_rows"],
+            {c: ComponentValidation.from_json(r) for c, r in report["components"].items()},
+        )
 
     @classmethod
     def load(cls, path: Path | str) -> ValidationReport:
@@ -175,8 +182,16 @@ def plot_explained_variance(emulator: Emulator, path: Path | str, n_max: int = 2
     offsets = np.linspace(-0.15, 0.15, len(emulator.pcas)) if len(emulator.pcas) > 1 else np.zeros(1)
     for (c, pca), (colour, ls, marker), dx in zip(emulator.pcas.items(), styles * len(emulator.pcas), offsets):
         ratio = np.cumsum(pca.explained_variance_ratio_)[:n_max]
-        ax.plot(np.arange(1, len(ratio) + 1) + dx, ratio, color=colour, ls=ls, marker=marker, ms=4, lw=1.4,
-                label=f"E_{c} (M = {pca.n_components_})")
+        ax.plot(
+            np.arange(1, len(ratio) + 1) + dx,
+            ratio,
+            color=colour,
+            ls=ls,
+            marker=marker,
+            ms=4,
+            lw=1.4,
+            label=f"E_{c} (M = {pca.n_components_})",
+        )
     ax.axhline(0.99, color="k", lw=0.8, ls="--", label="99 %")
     ax.set_xlabel("number of principal components M")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))

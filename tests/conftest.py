@@ -51,8 +51,7 @@ def small_cell_average_dataset(tmp_path_factory, mesh_dir):
     text = (PRESET_DIR / "small.toml").read_text().replace('name = "small"', 'name = "small_cells"')
     config.write_text(text + '\n[observable]\nkind = "top_cell_average"\n')
     out = folder / "small_cells.h5"
-    res = skinid("sweep", "--config", config, "--mesh-dir", mesh_dir, "--out", out, "--quiet",
-                 ranks=2 if MPIRUN else 1)
+    res = skinid("sweep", "--config", config, "--mesh-dir", mesh_dir, "--out", out, "--quiet", ranks=2 if MPIRUN else 1)
     assert res.returncode == 0, res.stderr
     return out
 

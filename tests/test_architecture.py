@@ -72,8 +72,9 @@ def models(small_config, mesh_dir):
     allows around the membrane: 5 mm cells (4 across it), 15 mm at the block edge."""
     from skinfem.model import SkinModel
 
-    tiny = small_config.with_changes(mesh={"h_membrane": 5.0, "h_far": 15.0, "muscle_layers": 1},
-                                     solver={"increments": 2})
+    tiny = small_config.with_changes(
+        mesh={"h_membrane": 5.0, "h_far": 15.0, "muscle_layers": 1}, solver={"increments": 2}
+    )
     with pytest.MonkeyPatch.context() as monkeypatch:
         register_example(monkeypatch)
         model = SkinModel(tiny, MPI.COMM_SELF, mesh_dir=mesh_dir, effects=["pre_stretch", "skin_tension"])

@@ -98,6 +98,7 @@ def inputs(tmp_path_factory) -> Inputs:
 def no_computing(monkeypatch):
     """Any computing fails the test: a refusal comes first."""
     for target, what in COMPUTING.items():
+
         def started(*args, what=what, **kwargs):
             pytest.fail(f"{what} started before the input was refused")
 
@@ -106,8 +107,11 @@ def no_computing(monkeypatch):
 
 def snapshot(*folders: Path) -> dict[Path, tuple[int, bytes] | None]:
     """Every path under the folders: a file's mtime and bytes, None for a folder."""
-    return {p: (p.stat().st_mtime_ns, p.read_bytes()) if p.is_file() else None
-            for folder in folders for p in sorted(folder.rglob("*"))}
+    return {
+        p: (p.stat().st_mtime_ns, p.read_bytes()) if p.is_file() else None
+        for folder in folders
+        for p in sorted(folder.rglob("*"))
+    }
 
 
 def run_here(argv: list[str], capsys) -> tuple[int, str]:
@@ -136,17 +140,21 @@ def assert_refused(code: int, err: str, message: str) -> None:
 
 def measurement(edit):
     """tmp/bad.csv: the shared measurement's text through ``edit``."""
+
     def make(tmp: Path, inp: Inputs) -> None:
         (tmp / "bad.csv").write_bytes(edit(inp.m.read_text()).encode())
+
     return make
 
 
 def measurement_of(xy, strain=None, alpha=(0.05, -0.05)):
     """tmp/bad.csv: a measurement of points ``xy`` (plausible strains unless given, sd 1e-3)."""
+
     def make(tmp: Path, inp: Inputs) -> None:
         xy_ = np.asarray(xy, dtype=float)
         values = plausible_strain(xy_, alpha) if strain is None else strain(xy_)
         write_measurement(tmp / "bad.csv", xy_, values, alpha, 1.0, np.full((len(xy_), 3), 1e-3))
+
     return make
 
 
@@ -160,10 +168,12 @@ def replace_values(text: str, k: int, values: str) -> str:
 
 def dataset(edit):
     """tmp/bad.h5: a copy of the shared dataset changed by ``edit(h5py.File)``."""
+
     def make(tmp: Path, inp: Inputs) -> None:
         shutil.copy(inp.data, tmp / "bad.h5")
         with h5py.File(tmp / "bad.h5", "r+") as f:
             edit(f)
+
     return make
 
 
@@ -177,9 +187,11 @@ def other_mesh(f) -> None:
 
 def emulator(edit):
     """tmp/emu: a copy of the shared emulator, one file changed by ``edit(folder)``."""
+
     def make(tmp: Path, inp: Inputs) -> None:
         shutil.copytree(inp.emu, tmp / "emu")
         edit(tmp / "emu")
+
     return make
 
 
@@ -187,11 +199,13 @@ def truncate(name: str):
     def edit(folder: Path) -> None:
         data = (folder / name).read_bytes()
         (folder / name).write_bytes(data[: len(data) // 2])
+
     return edit
 
 
 def meta(change):
     """Edit meta.json: ``change(dict)`` or, if it is a string, replace the file's text by it."""
+
     def edit(folder: Path) -> None:
         path = folder / "meta.json"
         if isinstance(change, str):
@@ -200,13 +214,16 @@ def meta(change):
         entries = json.loads(path.read_text())
         change(entries)
         path.write_text(json.dumps(entries))
+
     return edit
 
 
 def file(name: str, content: bytes | str):
     """tmp/name holding ``content``."""
+
     def make(tmp: Path, inp: Inputs) -> None:
         (tmp / name).write_bytes(content.encode() if isinstance(content, str) else content)
+
     return make
 
 
@@ -216,8 +233,10 @@ def config(toml: str | bytes):
 
 
 def bounds(theta="[0.0, 90.0]", mu="[0.001, 0.002]") -> str:
-    return (f"[sweep]\nbounds = {{ mu = {mu}, k1 = [0.012, 0.022], k2 = [8.3, 15.3], kappa = [0.27, 0.3], "
-            f"theta = {theta} }}\n")
+    return (
+        f"[sweep]\nbounds = {{ mu = {mu}, k1 = [0.012, 0.022], k2 = [8.3, 15.3], kappa = [0.27, 0.3], "
+        f"theta = {theta} }}\n"
+    )
 
 
 # ---------------------------------------------------------------- the corpus
@@ -245,53 +264,102 @@ CASES = {
     "measurement-empty": (f"{CHECK} {{tmp}}/bad.csv", "bad.csv:1: first line must be", file("bad.csv", "")),
     "measurement-is-a-dic-export": (f"{CHECK} " + str(DIC), "first line must be '# skinid-measurement v1'", None),
     "measurement-with-bom-is-read": (  # the BOM is not the problem any more: the NaN row is
-        f"{CHECK} {{tmp}}/bad.csv", "NaN or infinite value",
-        measurement(lambda t: "\ufeff" + replace_values(t, 3, "nan,0,0,0.001,0.001,0.001"))),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "NaN or infinite value",
+        measurement(lambda t: "\ufeff" + replace_values(t, 3, "nan,0,0,0.001,0.001,0.001")),
+    ),
     "measurement-header-without-alpha22": (
-        f"{CHECK} {{tmp}}/bad.csv", "header line '# alpha22 = ...' is missing",
-        measurement(lambda t: t.replace("# alpha22 = -0.05\n", ""))),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "header line '# alpha22 = ...' is missing",
+        measurement(lambda t: t.replace("# alpha22 = -0.05\n", "")),
+    ),
     "measurement-alpha-nan": (
-        f"{CHECK} {{tmp}}/bad.csv", "bad design in the header: alpha11 must be a finite number",
-        measurement(lambda t: t.replace("# alpha11 = 0.05", "# alpha11 = nan"))),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "bad design in the header: alpha11 must be a finite number",
+        measurement(lambda t: t.replace("# alpha11 = 0.05", "# alpha11 = nan")),
+    ),
     "measurement-alpha-beyond-any-design": (
-        f"{CHECK} {{tmp}}/bad.csv", "|alpha22| must be < 0.5",
-        measurement(lambda t: t.replace("# alpha22 = -0.05", "# alpha22 = -5"))),
-    "measurement-t-zero": (f"{CHECK} {{tmp}}/bad.csv", "t = 0.0 must be in (0, 1]",
-                           measurement(lambda t: t.replace("# t = 1.0", "# t = 0"))),
-    "measurement-unknown-strain-measure": (f"{CHECK} {{tmp}}/bad.csv", "unknown strain measure 'cauchy'",
-                                           measurement(lambda t: t.replace("= log", "= cauchy"))),
-    "measurement-column-missing": (f"{CHECK} {{tmp}}/bad.csv", "column(s) exy missing",
-                                   measurement(lambda t: t.replace(",exy,", ",gxy,"))),
-    "measurement-short-row": (f"{CHECK} {{tmp}}/bad.csv", "expected 8 values, found 7",
-                              measurement(lambda t: replace_values(t, 5, "0,0,0,0.001,0.001"))),
-    "measurement-value-not-a-number": (f"{CHECK} {{tmp}}/bad.csv", "a value is not a number",
-                                       measurement(lambda t: replace_values(t, 5, "0.01,x,0,0.001,0.001,0.001"))),
-    "measurement-infinite-strain": (f"{CHECK} {{tmp}}/bad.csv", "NaN or infinite value",
-                                    measurement(lambda t: replace_values(t, 5, "inf,0,0,0.001,0.001,0.001"))),
-    "measurement-zero-sd": (f"{CHECK} {{tmp}}/bad.csv", "standard deviations must be > 0",
-                            measurement(lambda t: replace_values(t, 5, "0,0,0,0,0.001,0.001"))),
-    "measurement-two-rows": (f"{CHECK} {{tmp}}/bad.csv", "only 2 data rows; need at least 3",
-                             measurement_of([[0, 0], [1, 1]])),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "|alpha22| must be < 0.5",
+        measurement(lambda t: t.replace("# alpha22 = -0.05", "# alpha22 = -5")),
+    ),
+    "measurement-t-zero": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "t = 0.0 must be in (0, 1]",
+        measurement(lambda t: t.replace("# t = 1.0", "# t = 0")),
+    ),
+    "measurement-unknown-strain-measure": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "unknown strain measure 'cauchy'",
+        measurement(lambda t: t.replace("= log", "= cauchy")),
+    ),
+    "measurement-column-missing": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "column(s) exy missing",
+        measurement(lambda t: t.replace(",exy,", ",gxy,")),
+    ),
+    "measurement-short-row": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "expected 8 values, found 7",
+        measurement(lambda t: replace_values(t, 5, "0,0,0,0.001,0.001")),
+    ),
+    "measurement-value-not-a-number": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "a value is not a number",
+        measurement(lambda t: replace_values(t, 5, "0.01,x,0,0.001,0.001,0.001")),
+    ),
+    "measurement-infinite-strain": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "NaN or infinite value",
+        measurement(lambda t: replace_values(t, 5, "inf,0,0,0.001,0.001,0.001")),
+    ),
+    "measurement-zero-sd": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "standard deviations must be > 0",
+        measurement(lambda t: replace_values(t, 5, "0,0,0,0,0.001,0.001")),
+    ),
+    "measurement-two-rows": (
+        f"{CHECK} {{tmp}}/bad.csv",
+        "only 2 data rows; need at least 3",
+        measurement_of([[0, 0], [1, 1]]),
+    ),
     "measurement-conflicting-duplicate": (  # was silently dropped by the thinning
-        f"{CHECK} {{tmp}}/bad.csv", "point (-20, -20) is also on line 7, with other values",
-        measurement(lambda t: t + "-20,-20,0.3,0,0,0.001,0.001,0.001\n")),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "point (-20, -20) is also on line 7, with other values",
+        measurement(lambda t: t + "-20,-20,0.3,0,0,0.001,0.001,0.001\n"),
+    ),
     "measurement-collinear": (  # was a QhullError traceback
-        f"{CHECK} {{tmp}}/bad.csv", "the 41 points lie on one line",
-        measurement_of(np.column_stack([np.linspace(-20, 20, 41), np.full(41, 10.0)]))),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "the 41 points lie on one line",
+        measurement_of(np.column_stack([np.linspace(-20, 20, 41), np.full(41, 10.0)])),
+    ),
     "measurement-percent": (  # was accepted: "chi2/dof 1.8e8, no candidate explains it"
-        f"{CHECK} {{tmp}}/bad.csv", "strains in percent?",
-        measurement_of(grid(), strain=lambda xy: plausible_strain(xy, scale=100))),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "strains in percent?",
+        measurement_of(grid(), strain=lambda xy: plausible_strain(xy, scale=100)),
+    ),
     "measurement-percent-declared-green": (  # said neither which file nor why
-        f"{CHECK} {{tmp}}/bad.csv", "bad.csv: green strains with a non-positive stretch cannot be converted",
-        measurement(lambda t: replace_values(t, 5, "-60,0,0,0.001,0.001,0.001").replace("= log", "= green"))),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "bad.csv: green strains with a non-positive stretch cannot be converted",
+        measurement(lambda t: replace_values(t, 5, "-60,0,0,0.001,0.001,0.001").replace("= log", "= green")),
+    ),
     "measurement-thinned-to-fewer-points-than-parameters": (
-        f"{CHECK_M} --spacing 25", "4 measured points are not more than the 5 parameters", None),
+        f"{CHECK_M} --spacing 25",
+        "4 measured points are not more than the 5 parameters",
+        None,
+    ),
     # -- check options
-    "check-noise-sd-negative": (f"{CHECK_M} --noise-sd -0.001 1e-3 1e-3", "noise sd must be three positive numbers",
-                                None),
+    "check-noise-sd-negative": (
+        f"{CHECK_M} --noise-sd -0.001 1e-3 1e-3",
+        "noise sd must be three positive numbers",
+        None,
+    ),
     "check-noise-sd-nan": (f"{CHECK_M} --noise-sd nan 1e-3 1e-3", "noise sd must be three positive numbers", None),
     "check-noise-length-nan": (  # ran the FE model, then said "mu must be a finite number"
-        f"{CHECK_M} --noise-length nan", "--noise-length must be a number >= 0 mm, got nan", None),
+        f"{CHECK_M} --noise-length nan",
+        "--noise-length must be a number >= 0 mm, got nan",
+        None,
+    ),
     "check-noise-length-negative": (f"{CHECK_M} --noise-length -1", "--noise-length must be a number >= 0 mm", None),
     "check-noise-nugget-above-1": (f"{CHECK_M} --noise-nugget 2", "--noise-nugget must be in [0, 1]", None),
     "check-spacing-zero": (f"{CHECK_M} --spacing 0", "the point spacing must be > 0 mm", None),
@@ -301,12 +369,20 @@ CASES = {
     "check-increments-zero": (f"{CHECK_M} --increments 0", "--increments must be >= 1", None),
     "check-confirm-negative": (f"{CHECK_M} --confirm -1", "--confirm must be >= 0", None),
     "check-no-sd-anywhere": (
-        f"{CHECK} {{tmp}}/bad.csv", "the measurements have no sd_exx, sd_eyy, sd_exy columns: give --noise-sd",
-        measurement(lambda t: t.replace(",sd_exx,sd_eyy,sd_exy", "").replace(",0.001,0.001,0.001", ""))),
-    "check-config-unknown": ("check --config smal --out {out} --measurement {m}",
-                             "config 'smal': no such file and no such preset", None),
-    "check-emulator-not-an-emulator": ("check --emulator {tmp} --out {out} --measurement {m}",
-                                       "is not an emulator directory (no meta.json)", None),
+        f"{CHECK} {{tmp}}/bad.csv",
+        "the measurements have no sd_exx, sd_eyy, sd_exy columns: give --noise-sd",
+        measurement(lambda t: t.replace(",sd_exx,sd_eyy,sd_exy", "").replace(",0.001,0.001,0.001", "")),
+    ),
+    "check-config-unknown": (
+        "check --config smal --out {out} --measurement {m}",
+        "config 'smal': no such file and no such preset",
+        None,
+    ),
+    "check-emulator-not-an-emulator": (
+        "check --emulator {tmp} --out {out} --measurement {m}",
+        "is not an emulator directory (no meta.json)",
+        None,
+    ),
     # -- infer
     "infer-draws-negative": (f"{INFER_DATA} --draws -1", "--draws must be >= 1", None),  # was ZeroDivisionError
     "infer-chains-zero": (f"{INFER_DATA} --chains 0", "--chains must be >= 1", None),  # "need at least one array"
@@ -317,78 +393,143 @@ CASES = {
     "infer-design-out-of-range": (f"{INFER_DATA} --designs 2", "design 2 is not in [0, 2)", None),
     "infer-frame-out-of-range": (f"{INFER_DATA} --frames 2", "frame 2 is not in [0, 2)", None),
     "infer-designs-not-integers": (f"{INFER_DATA} --designs 0,a", "--designs takes design indices", None),
-    "infer-design-alpha-not-in-the-dataset": (f"{INFER_DATA} --designs 0.05,0.01", "has no design alpha = 0.05,0.01",
-                                              None),
+    "infer-design-alpha-not-in-the-dataset": (
+        f"{INFER_DATA} --designs 0.05,0.01",
+        "has no design alpha = 0.05,0.01",
+        None,
+    ),
     "infer-design-alpha-odd-count": (f"{INFER_DATA} --designs 0.05,0.05,0.05", "come in pairs", None),
-    "infer-failed-simulation": (f"{INFER} --data {{tmp}}/bad.h5 --material 0 --designs 0",
-                                "simulation (material 0, design 0) did not converge", dataset(set_status)),
+    "infer-failed-simulation": (
+        f"{INFER} --data {{tmp}}/bad.h5 --material 0 --designs 0",
+        "simulation (material 0, design 0) did not converge",
+        dataset(set_status),
+    ),
     "infer-dataset-of-another-mesh-same-cells": (  # was accepted
-        f"{INFER} --data {{tmp}}/bad.h5 --material 0", "was simulated on another mesh than the emulator's dataset",
-        dataset(other_mesh)),
+        f"{INFER} --data {{tmp}}/bad.h5 --material 0",
+        "was simulated on another mesh than the emulator's dataset",
+        dataset(other_mesh),
+    ),
     "infer-known-noise-without-sd": (
-        f"{INFER} --noise known --measurement {{tmp}}/bad.csv", "noise='known' needs measurements with sd_exx",
-        measurement(lambda t: t.replace(",sd_exx,sd_eyy,sd_exy", "").replace(",0.001,0.001,0.001", ""))),
+        f"{INFER} --noise known --measurement {{tmp}}/bad.csv",
+        "noise='known' needs measurements with sd_exx",
+        measurement(lambda t: t.replace(",sd_exx,sd_eyy,sd_exy", "").replace(",0.001,0.001,0.001", "")),
+    ),
     "infer-alpha-outside-the-emulators-range": (  # gave only R-hat warnings
-        f"{INFER} --measurement {{tmp}}/bad.csv", "alpha11*t = 0.3 is outside the emulator's training range",
-        measurement_of(grid(), alpha=(0.3, 0.0))),
+        f"{INFER} --measurement {{tmp}}/bad.csv",
+        "alpha11*t = 0.3 is outside the emulator's training range",
+        measurement_of(grid(), alpha=(0.3, 0.0)),
+    ),
     "infer-measurement-outside-the-block": (
-        f"{INFER} --measurement {{tmp}}/bad.csv", "lies outside the block |x|, |y| <= 25",
-        measurement(lambda t: t + "30,0,0,0,0,0.001,0.001,0.001\n")),
+        f"{INFER} --measurement {{tmp}}/bad.csv",
+        "lies outside the block |x|, |y| <= 25",
+        measurement(lambda t: t + "30,0,0,0,0,0.001,0.001,0.001\n"),
+    ),
     "infer-measurement-covering-no-skin-cell": (
-        f"{INFER} --measurement {{tmp}}/bad.csv", "only 0 skin cells lie inside the measured region",
-        measurement_of(grid(1.0, 0.5))),
-    "infer-measurement-percent": (f"{INFER} --measurement {{tmp}}/bad.csv", "strains in percent?",
-                                  measurement_of(grid(), strain=lambda xy: plausible_strain(xy, scale=100))),
+        f"{INFER} --measurement {{tmp}}/bad.csv",
+        "only 0 skin cells lie inside the measured region",
+        measurement_of(grid(1.0, 0.5)),
+    ),
+    "infer-measurement-percent": (
+        f"{INFER} --measurement {{tmp}}/bad.csv",
+        "strains in percent?",
+        measurement_of(grid(), strain=lambda xy: plausible_strain(xy, scale=100)),
+    ),
     "infer-measurement-collinear": (  # was a QhullError traceback
-        f"{INFER} --measurement {{tmp}}/bad.csv", "points lie on one line",
-        measurement_of(np.column_stack([np.linspace(-20, 20, 41), np.linspace(-10, 10, 41)]))),
+        f"{INFER} --measurement {{tmp}}/bad.csv",
+        "points lie on one line",
+        measurement_of(np.column_stack([np.linspace(-20, 20, 41), np.linspace(-10, 10, 41)])),
+    ),
     # -- datasets
     "info-missing-dataset": ("info {tmp}/none.h5", "dataset '{tmp}/none.h5' does not exist", None),
     "info-folder": ("info {tmp}", "is a folder, not a dataset", None),
     "info-not-hdf5": ("info {m}", "is not a readable HDF5 file", None),
-    "info-hdf5-not-a-dataset": ("info {tmp}/bad.h5", "is not a skinid dataset (no format attribute)",
-                                dataset(lambda f: f.attrs.__delitem__("format"))),
-    "info-other-format-version": ("info {tmp}/bad.h5", "has dataset format 7, this skinid reads format 1",
-                                  dataset(lambda f: f.attrs.__setitem__("format_version", 7))),
-    "info-no-strain": ("info {tmp}/bad.h5", "is not a complete skinid dataset: it has no /strain",  # KeyError
-                       dataset(lambda f: f.__delitem__("strain"))),
-    "fit-no-strain": ("surrogate fit --data {tmp}/bad.h5 --out {out}", "it has no /strain",  # KeyError
-                      dataset(lambda f: f.__delitem__("strain"))),
-    "noise-no-status": ("noise --data {tmp}/bad.h5 --length 1 --level 0.05 --out {out}.h5", "it has no /status",
-                        dataset(lambda f: f.__delitem__("status"))),
-    "merge-no-cells": ("merge {tmp}/bad.h5 --out {out}.h5", "it has no /cells/xy",
-                       dataset(lambda f: f.__delitem__("cells/xy"))),
-    "merge-missing-shard": ("merge {data} {tmp}/none.h5 --out {out}.h5", "dataset '{tmp}/none.h5' does not exist",
-                            None),
-    "merge-shard-of-another-mesh": ("merge {data} {tmp}/bad.h5 --out {out}.h5",
-                                    "cannot merge: '{tmp}/bad.h5' has another mesh than", dataset(other_mesh)),
+    "info-hdf5-not-a-dataset": (
+        "info {tmp}/bad.h5",
+        "is not a skinid dataset (no format attribute)",
+        dataset(lambda f: f.attrs.__delitem__("format")),
+    ),
+    "info-other-format-version": (
+        "info {tmp}/bad.h5",
+        "has dataset format 7, this skinid reads format 1",
+        dataset(lambda f: f.attrs.__setitem__("format_version", 7)),
+    ),
+    "info-no-strain": (
+        "info {tmp}/bad.h5",
+        "is not a complete skinid dataset: it has no /strain",  # KeyError
+        dataset(lambda f: f.__delitem__("strain")),
+    ),
+    "fit-no-strain": (
+        "surrogate fit --data {tmp}/bad.h5 --out {out}",
+        "it has no /strain",  # KeyError
+        dataset(lambda f: f.__delitem__("strain")),
+    ),
+    "noise-no-status": (
+        "noise --data {tmp}/bad.h5 --length 1 --level 0.05 --out {out}.h5",
+        "it has no /status",
+        dataset(lambda f: f.__delitem__("status")),
+    ),
+    "merge-no-cells": (
+        "merge {tmp}/bad.h5 --out {out}.h5",
+        "it has no /cells/xy",
+        dataset(lambda f: f.__delitem__("cells/xy")),
+    ),
+    "merge-missing-shard": (
+        "merge {data} {tmp}/none.h5 --out {out}.h5",
+        "dataset '{tmp}/none.h5' does not exist",
+        None,
+    ),
+    "merge-shard-of-another-mesh": (
+        "merge {data} {tmp}/bad.h5 --out {out}.h5",
+        "cannot merge: '{tmp}/bad.h5' has another mesh than",
+        dataset(other_mesh),
+    ),
     "merge-shard-not-hdf5": ("merge {m} --out {out}.h5", "is not a readable HDF5 file", None),
     # -- emulators
-    "emulator-missing": ("infer --emulator {tmp}/none --data {data} --material 0 --out {out}",
-                         "is not an emulator directory (no meta.json)", None),
+    "emulator-missing": (
+        "infer --emulator {tmp}/none --data {data} --material 0 --out {out}",
+        "is not an emulator directory (no meta.json)",
+        None,
+    ),
     "emulator-truncated-gp": (  # was BadZipFile
         "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
-        "gp.npz' is truncated or corrupt", emulator(truncate("gp.npz"))),
-    "emulator-truncated-pca": ("surrogate validate --emulator {tmp}/emu", "pca.npz' is truncated or corrupt",
-                               emulator(truncate("pca.npz"))),
+        "gp.npz' is truncated or corrupt",
+        emulator(truncate("gp.npz")),
+    ),
+    "emulator-truncated-pca": (
+        "surrogate validate --emulator {tmp}/emu",
+        "pca.npz' is truncated or corrupt",
+        emulator(truncate("pca.npz")),
+    ),
     "emulator-truncated-sklearn-gps": (  # said only "EOF: reading array data, ..."
-        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}", "sklearn_gps.joblib' cannot be read",
-        emulator(truncate("sklearn_gps.joblib"))),
+        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
+        "sklearn_gps.joblib' cannot be read",
+        emulator(truncate("sklearn_gps.joblib")),
+    ),
     "emulator-meta-without-lower": (  # was KeyError
-        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}", "meta.json' has no entry 'lower'",
-        emulator(meta(lambda e: e.pop("lower")))),
+        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
+        "meta.json' has no entry 'lower'",
+        emulator(meta(lambda e: e.pop("lower"))),
+    ),
     "emulator-meta-not-json": (  # said only "Expecting property name ..."
-        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}", "meta.json' is not valid JSON",
-        emulator(meta("{not json"))),
-    "emulator-other-format": ("infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
-                              "is not a skinid emulator", emulator(meta(lambda e: e.update(format="other")))),
-    "emulator-newer-format-version": ("infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
-                                      "was written in emulator format 9",
-                                      emulator(meta(lambda e: e.update(format_version=9)))),
-    "validate-dataset-of-another-mesh": ("surrogate validate --emulator {tmp}/emu --data {tmp}/bad.h5",
-                                         "was simulated on another mesh than the emulator's data",
-                                         lambda tmp, inp: (emulator(lambda f: None)(tmp, inp),
-                                                           dataset(other_mesh)(tmp, inp))),
+        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
+        "meta.json' is not valid JSON",
+        emulator(meta("{not json")),
+    ),
+    "emulator-other-format": (
+        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
+        "is not a skinid emulator",
+        emulator(meta(lambda e: e.update(format="other"))),
+    ),
+    "emulator-newer-format-version": (
+        "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
+        "was written in emulator format 9",
+        emulator(meta(lambda e: e.update(format_version=9))),
+    ),
+    "validate-dataset-of-another-mesh": (
+        "surrogate validate --emulator {tmp}/emu --data {tmp}/bad.h5",
+        "was simulated on another mesh than the emulator's data",
+        lambda tmp, inp: (emulator(lambda f: None)(tmp, inp), dataset(other_mesh)(tmp, inp)),
+    ),
     # -- surrogate fit options
     "fit-n-components-zero": (f"{FIT} --n-components 0", "--n-components must be >= 1", None),  # was ignored
     "fit-variance-above-1": (f"{FIT} --variance 1.5", "--variance must be in (0, 1), got 1.5", None),
@@ -397,89 +538,171 @@ CASES = {
     "fit-restarts-negative": (f"{FIT} --restarts -1", "--restarts must be >= 0", None),
     "fit-missing-dataset": ("surrogate fit --data {tmp}/none.h5 --out {out}", "does not exist", None),
     # -- noise options
-    "noise-length-negative": (NOISE.replace("--length 1", "--length -1"),
-                              "--length: the noise length scale must be > 0 mm", None),
-    "noise-length-nan": (NOISE.replace("--length 1", "--length nan"),  # read the data, then failed to write it
-                         "--length: the noise length scale must be > 0 mm, got nan", None),
-    "noise-level-nan": (NOISE.replace("--level 0.05", "--level nan"),
-                        "--level: the noise level must be a fraction in [0, 1), got nan", None),
+    "noise-length-negative": (
+        NOISE.replace("--length 1", "--length -1"),
+        "--length: the noise length scale must be > 0 mm",
+        None,
+    ),
+    "noise-length-nan": (
+        NOISE.replace("--length 1", "--length nan"),  # read the data, then failed to write it
+        "--length: the noise length scale must be > 0 mm, got nan",
+        None,
+    ),
+    "noise-level-nan": (
+        NOISE.replace("--level 0.05", "--level nan"),
+        "--level: the noise level must be a fraction in [0, 1), got nan",
+        None,
+    ),
     "noise-out-not-h5": (NOISE.replace("noisy.h5", "noisy.csv"), "--out must end in .h5", None),
     # -- study options
     "study-test-set-design-out-of-range": (f"{TEST_SET} --designs 7", "--designs 7 is not in [0, 2)", None),
     "study-test-set-frame-out-of-range": (f"{TEST_SET} --designs 0 --frames 9", "--frames 9 is not in [0, 2)", None),
-    "study-test-set-material-out-of-range": (f"{TEST_SET} --designs 0 --materials 99",
-                                             "--materials 99 is not in [0, 12)", None),
+    "study-test-set-material-out-of-range": (
+        f"{TEST_SET} --designs 0 --materials 99",
+        "--materials 99 is not in [0, 12)",
+        None,
+    ),
     "study-test-set-draws-zero": (f"{TEST_SET} --designs 0 --draws 0", "--draws must be >= 1", None),
     "study-test-set-dataset-of-another-mesh": (
         "study test-set --emulator {emu} --data {tmp}/bad.h5 --designs 0 --out {out}",
-        "was simulated on another mesh than the emulator's dataset", dataset(other_mesh)),
-    "study-coverage-n-beyond-the-frames": (f"{COVERAGE} --setup frames --n 3",
-                                           "--n must be in [1, 2] for the frames setup", None),
-    "study-coverage-n-beyond-the-designs": (f"{COVERAGE} --setup membranes --n 5",
-                                            "--n must be in [1, 2] for the membranes setup", None),
+        "was simulated on another mesh than the emulator's dataset",
+        dataset(other_mesh),
+    ),
+    "study-coverage-n-beyond-the-frames": (
+        f"{COVERAGE} --setup frames --n 3",
+        "--n must be in [1, 2] for the frames setup",
+        None,
+    ),
+    "study-coverage-n-beyond-the-designs": (
+        f"{COVERAGE} --setup membranes --n 5",
+        "--n must be in [1, 2] for the membranes setup",
+        None,
+    ),
     "study-coverage-noise-negative": (f"{COVERAGE} --noise-sd -0.001", "--noise-sd must be >= 0, got -0.001", None),
     "study-coverage-no-noise-seed": (f"{COVERAGE} --noise-seeds 0", "--noise-seeds must be >= 1, got 0", None),
-    "study-setups-design-out-of-range": ("study setups --emulator {emu} --data {data} --designs 9 --out {out}",
-                                         "design 9 is not in [0, 2)", None),
-    "study-noise-two-designs": (STUDY_NOISE.replace("--designs 0", "--designs 0,1"), "--designs names one design",
-                                None),
-    "study-noise-design-out-of-range": (STUDY_NOISE.replace("--designs 0", "--designs 9"),
-                                        "--designs 9 is not in [0, 2)", None),
-    "study-noise-level-negative": (f"{STUDY_NOISE} --levels 0.05 -1", "--levels must be positive numbers, got -1",
-                                   None),
+    "study-setups-design-out-of-range": (
+        "study setups --emulator {emu} --data {data} --designs 9 --out {out}",
+        "design 9 is not in [0, 2)",
+        None,
+    ),
+    "study-noise-two-designs": (
+        STUDY_NOISE.replace("--designs 0", "--designs 0,1"),
+        "--designs names one design",
+        None,
+    ),
+    "study-noise-design-out-of-range": (
+        STUDY_NOISE.replace("--designs 0", "--designs 9"),
+        "--designs 9 is not in [0, 2)",
+        None,
+    ),
+    "study-noise-level-negative": (
+        f"{STUDY_NOISE} --levels 0.05 -1",
+        "--levels must be positive numbers, got -1",
+        None,
+    ),
     "study-noise-length-zero": (f"{STUDY_NOISE} --lengths 0", "--lengths must be positive numbers, got 0", None),
     "study-noise-gp-fraction-above-1": (f"{STUDY_NOISE} --gp-fraction 2", "--gp-fraction must be in (0, 1]", None),
     # -- configurations (TOML), read by every FE command
     "config-unknown-key": (SWEEP, "config key 'solver.increment': unknown key", config("[solver]\nincrement = 5\n")),
-    "config-integer-expected": (SWEEP, "config key 'solver.increments': expected an integer, got 2.5",
-                                config("[solver]\nincrements = 2.5\n")),
-    "config-boolean-for-integer": (SWEEP, "config key 'solver.increments': expected an integer, got True",
-                                   config("[solver]\nincrements = true\n")),
-    "config-negative-size": (SWEEP, "config key 'mesh.length': must be > 0, got -50.0",
-                             config("[mesh]\nlength = -50.0\n")),
+    "config-integer-expected": (
+        SWEEP,
+        "config key 'solver.increments': expected an integer, got 2.5",
+        config("[solver]\nincrements = 2.5\n"),
+    ),
+    "config-boolean-for-integer": (
+        SWEEP,
+        "config key 'solver.increments': expected an integer, got True",
+        config("[solver]\nincrements = true\n"),
+    ),
+    "config-negative-size": (
+        SWEEP,
+        "config key 'mesh.length': must be > 0, got -50.0",
+        config("[mesh]\nlength = -50.0\n"),
+    ),
     "config-zero-layers": (SWEEP, "config key 'mesh.skin_layers': must be > 0", config("[mesh]\nskin_layers = 0\n")),
-    "config-nan": (SWEEP, "config key 'muscle.bulk_ratio': must be a finite number, got nan",
-                   config("[muscle]\nbulk_ratio = nan\n")),
-    "config-infinite": (SWEEP, "config key 'muscle.mu': must be a finite number, got inf",  # was accepted
-                        config("[muscle]\nmu = inf\n")),
+    "config-nan": (
+        SWEEP,
+        "config key 'muscle.bulk_ratio': must be a finite number, got nan",
+        config("[muscle]\nbulk_ratio = nan\n"),
+    ),
+    "config-infinite": (
+        SWEEP,
+        "config key 'muscle.mu': must be a finite number, got inf",  # was accepted
+        config("[muscle]\nmu = inf\n"),
+    ),
     "config-section-not-a-table": (SWEEP, "config key 'mesh': must be a table", config("mesh = 3\n")),
     "config-invalid-toml": (SWEEP, "invalid TOML", config("[mesh\nh_far = 2.0\n")),
     "config-not-utf8": (SWEEP, "c.toml' is not UTF-8 text", config(b'name = "caf\xe9"\n')),  # said only "codec"
     "config-folder": ("sweep --quiet --out {tmp}/data.h5 --config {tmp}", "is a folder, not a TOML file", None),
-    "config-theta-bound-400": (SWEEP, "theta must be in [-180, 180] deg, got 400.0",  # was stored as is
-                               config(bounds(theta="[0.0, 400.0]"))),
-    "config-bound-not-a-number": (SWEEP, "config key 'sweep.bounds.mu': must be two finite numbers",
-                                  config(bounds(mu='["low", 0.002]'))),
-    "config-bounds-reversed": (SWEEP, "config key 'sweep.bounds.mu': low 0.002 > high 0.001",
-                               config(bounds(mu="[0.002, 0.001]"))),
-    "config-all-materials-held-out": (SWEEP, "config key 'sweep.n_test': must be in [0, n_materials)",
-                                      config("[sweep]\nn_materials = 4\nn_test = 4\n")),
-    "config-no-design": (SWEEP, "config key 'sweep.designs': must list at least one design",
-                         config("[sweep]\ndesigns = []\n")),
-    "config-unknown-membrane-model": (SWEEP, "config key 'membrane.model': must be 'elastic' or 'rigid'",
-                                      config('[membrane]\nmodel = "soft"\n')),
+    "config-theta-bound-400": (
+        SWEEP,
+        "theta must be in [-180, 180] deg, got 400.0",  # was stored as is
+        config(bounds(theta="[0.0, 400.0]")),
+    ),
+    "config-bound-not-a-number": (
+        SWEEP,
+        "config key 'sweep.bounds.mu': must be two finite numbers",
+        config(bounds(mu='["low", 0.002]')),
+    ),
+    "config-bounds-reversed": (
+        SWEEP,
+        "config key 'sweep.bounds.mu': low 0.002 > high 0.001",
+        config(bounds(mu="[0.002, 0.001]")),
+    ),
+    "config-all-materials-held-out": (
+        SWEEP,
+        "config key 'sweep.n_test': must be in [0, n_materials)",
+        config("[sweep]\nn_materials = 4\nn_test = 4\n"),
+    ),
+    "config-no-design": (
+        SWEEP,
+        "config key 'sweep.designs': must list at least one design",
+        config("[sweep]\ndesigns = []\n"),
+    ),
+    "config-unknown-membrane-model": (
+        SWEEP,
+        "config key 'membrane.model': must be 'elastic' or 'rigid'",
+        config('[membrane]\nmodel = "soft"\n'),
+    ),
     # -- simulate, sweep, mesh
     "simulate-theta-400": (  # was stored as is
-        f"{SIMULATE} --theta 400 --out {{out}}.h5", "theta must be in [-180, 180] deg, got 400.0", None),
-    "simulate-k1-negative": (f"{SIMULATE.replace('0.017', '-0.017')} --theta 30 --out {{out}}.h5",
-                             "k1 must be >= 0 MPa", None),
+        f"{SIMULATE} --theta 400 --out {{out}}.h5",
+        "theta must be in [-180, 180] deg, got 400.0",
+        None,
+    ),
+    "simulate-k1-negative": (
+        f"{SIMULATE.replace('0.017', '-0.017')} --theta 30 --out {{out}}.h5",
+        "k1 must be >= 0 MPa",
+        None,
+    ),
     "simulate-out-not-h5": (f"{SIMULATE} --theta 30 --out {{out}}.csv", "--out must end in .h5", None),
     "sweep-shard-beyond-count": ("sweep --quiet --out {out}.h5 --shard 3/2", "--shard 3/2: need 0 <= i < n", None),
     "sweep-shard-not-i-of-n": ("sweep --quiet --out {out}.h5 --shard 3", "--shard must look like i/n", None),
-    "sweep-ranks-per-sim-zero": ("sweep --quiet --out {out}.h5 --ranks-per-sim 0",
-                                 "--ranks-per-sim 0 must divide the number of MPI ranks", None),
+    "sweep-ranks-per-sim-zero": (
+        "sweep --quiet --out {out}.h5 --ranks-per-sim 0",
+        "--ranks-per-sim 0 must divide the number of MPI ranks",
+        None,
+    ),
     "sweep-out-not-h5": ("sweep --quiet --out {out}.txt", "--out must end in .h5", None),
     "mesh-config-unknown": ("mesh --config {tmp}/none.toml", "config file '{tmp}/none.toml' does not exist", None),
     # -- DIC imports and figures
     "import-a-measurement": (f"{IMPORT} {{m}}", "is already a skinid measurement: use it directly", None),
-    "import-empty-file": (f"{IMPORT} {{tmp}}/bad.txt", "format not recognised from the first line",
-                          file("bad.txt", "")),
+    "import-empty-file": (
+        f"{IMPORT} {{tmp}}/bad.txt",
+        "format not recognised from the first line",
+        file("bad.txt", ""),
+    ),
     "import-alpha-nan": (f"{IMPORT.replace('0.05', 'nan')} " + str(DIC), "alpha must be two finite numbers", None),
-    "show-missing-file": ("measurement show {tmp}/none.csv --out {out}.png", "DIC file '{tmp}/none.csv' does not exist",
-                          None),
+    "show-missing-file": (
+        "measurement show {tmp}/none.csv --out {out}.png",
+        "DIC file '{tmp}/none.csv' does not exist",
+        None,
+    ),
     "show-measurement-with-alpha-nan": (  # was plotted
-        "measurement show {tmp}/bad.csv --out {out}.png", "alpha11 must be a finite number",
-        measurement(lambda t: t.replace("# alpha11 = 0.05", "# alpha11 = nan"))),
+        "measurement show {tmp}/bad.csv --out {out}.png",
+        "alpha11 must be a finite number",
+        measurement(lambda t: t.replace("# alpha11 = 0.05", "# alpha11 = nan")),
+    ),
 }
 
 
@@ -565,15 +788,19 @@ def test_force_and_resume_exclude_each_other(command, tmp_path, capsys, monkeypa
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("fields, message", [
-    ("fields.xdmf", "fields.h5 exists; pass --force to replace it"),  # the data file of fields.xdmf
-    ("run.xdmf", "writes its data to"),  # the data file would be the --out file
-])
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        ("fields.xdmf", "fields.h5 exists; pass --force to replace it"),  # the data file of fields.xdmf
+        ("run.xdmf", "writes its data to"),  # the data file would be the --out file
+    ],
+)
 def test_simulate_refuses_fields_that_exist_or_would_overwrite_out(fields, message, tmp_path, capsys, monkeypatch):
     old_output(tmp_path / "fields.h5")
     before = snapshot(tmp_path)
-    code, err = run_output_case(f"{SIMULATE} --theta 30 --fields {tmp_path / fields}", tmp_path / "run.h5",
-                                tmp_path, capsys, monkeypatch)
+    code, err = run_output_case(
+        f"{SIMULATE} --theta 30 --fields {tmp_path / fields}", tmp_path / "run.h5", tmp_path, capsys, monkeypatch
+    )
     assert_refused(code, err, message)
     assert snapshot(tmp_path) == before
 
@@ -617,10 +844,13 @@ def test_a_stale_lock_is_reported_with_its_removal(tmp_path, capsys):
 # ---------------------------------------------------------------- in a new process: no PETSc list
 
 
-@pytest.mark.parametrize("arguments, message", [
-    pytest.param(f"{SIMULATE} --theta 400 --out {{tmp}}/run.h5", "theta must be in [-180, 180] deg", id="simulate"),
-    pytest.param(f"{CHECK} {{tmp}}/bad.csv", "strains in percent?", id="check"),
-])
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        pytest.param(f"{SIMULATE} --theta 400 --out {{tmp}}/run.h5", "theta must be in [-180, 180] deg", id="simulate"),
+        pytest.param(f"{CHECK} {{tmp}}/bad.csv", "strains in percent?", id="check"),
+    ],
+)
 def test_a_refused_command_prints_no_petsc_options(arguments, message, tmp_path):
     """PETSc, loaded by the FE commands, would list at exit the options of the run that never
     happened ("WARNING! There are options you set that were not used!")."""

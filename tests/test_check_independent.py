@@ -26,11 +26,23 @@ NOISE = dict(sd=np.full(3, 1e-3), length=2.0, nugget=0.3)  # DIC-like: 1000 micr
 def independent_measurements(small_config, mesh_dir, out, seed, effects=None, defects=()):
     from inference.synthetic import dic_points, synthetic_measurements
 
-    config = small_config.with_changes(mesh={"h_far": 4.0, "muscle_layers": 3},
-                                       solver={"element_degree": 2, "quadrature_degree": 4})
+    config = small_config.with_changes(
+        mesh={"h_far": 4.0, "muscle_layers": 3}, solver={"element_degree": 2, "quadrature_degree": 4}
+    )
     points = dic_points(18.0, 1.0, np.random.default_rng(seed))
-    return synthetic_measurements(config, TRUTH, [(0.05, -0.05)], NoiseModel(**NOISE), out, effects,
-                                  seed=seed, mesh_dir=mesh_dir, increments=2, points=points, defects=defects)
+    return synthetic_measurements(
+        config,
+        TRUTH,
+        [(0.05, -0.05)],
+        NoiseModel(**NOISE),
+        out,
+        effects,
+        seed=seed,
+        mesh_dir=mesh_dir,
+        increments=2,
+        points=points,
+        defects=defects,
+    )
 
 
 @pytest.mark.slow
@@ -41,9 +53,28 @@ def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_pa
     and the check says so instead of inventing a missing effect: either the residual is
     consistent with the noise, or its structure is put down to the mesh."""
     files = independent_measurements(small_config, mesh_dir, tmp_path / "m", seed=11)
-    res = skinid("check", "--config", "small", "--measurement", *files, "--out", tmp_path / "report",
-                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--increments", 2, "--confirm", 1,
-                 "--spacing", 2.0, "--mesh-dir", mesh_dir, ranks=2)
+    res = skinid(
+        "check",
+        "--config",
+        "small",
+        "--measurement",
+        *files,
+        "--out",
+        tmp_path / "report",
+        "--noise-length",
+        2.0,
+        "--noise-nugget",
+        0.3,
+        "--increments",
+        2,
+        "--confirm",
+        1,
+        "--spacing",
+        2.0,
+        "--mesh-dir",
+        mesh_dir,
+        ranks=2,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     disc = report["discretisation"]
@@ -52,8 +83,10 @@ def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_pa
     assert not any(c["explains"] for c in report["candidates"])
     # with the correction's amplitude fitted (a = 1.16 here) the residual is no longer read as
     # understated noise: it stays structured, and the verdict blames the mesh, not physics
-    assert ("no missing effect is needed" in report["verdict"]
-            or "this structure may be the mesh's: rerun on a finer mesh" in report["verdict"])
+    assert (
+        "no missing effect is needed" in report["verdict"]
+        or "this structure may be the mesh's: rerun on a finer mesh" in report["verdict"]
+    )
     assert "Most likely missing" not in report["verdict"]
     assert report["failed_runs"] == []
 
@@ -68,11 +101,31 @@ def test_a_defect_outside_the_registry_is_located_not_attributed(small_config, m
     from inference.synthetic import StiffInclusion
 
     centre = (-13.0, 4.0)
-    files = independent_measurements(small_config, mesh_dir, tmp_path / "m", seed=11,
-                                     defects=(StiffInclusion(centre, radius=3.5, ratio=8.0),))
-    res = skinid("check", "--config", "small", "--measurement", *files, "--out", tmp_path / "report",
-                 "--noise-length", 2.0, "--noise-nugget", 0.3, "--increments", 2, "--confirm", 1,
-                 "--spacing", 2.0, "--mesh-dir", mesh_dir, ranks=2)
+    files = independent_measurements(
+        small_config, mesh_dir, tmp_path / "m", seed=11, defects=(StiffInclusion(centre, radius=3.5, ratio=8.0),)
+    )
+    res = skinid(
+        "check",
+        "--config",
+        "small",
+        "--measurement",
+        *files,
+        "--out",
+        tmp_path / "report",
+        "--noise-length",
+        2.0,
+        "--noise-nugget",
+        0.3,
+        "--increments",
+        2,
+        "--confirm",
+        1,
+        "--spacing",
+        2.0,
+        "--mesh-dir",
+        mesh_dir,
+        ranks=2,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert "No candidate explains the residual" in report["verdict"]

@@ -58,14 +58,17 @@ def _measurement(path, extent=20.0, step=2.0):
     return write_measurement(path, xy, np.zeros((len(xy), 3)), (0.05, -0.05), 1.0, np.full((len(xy), 3), 1e-3))
 
 
-@pytest.mark.parametrize("problem, expected", [
-    ("outside", "lies outside the block"),
-    ("no_edge", "contains no membrane edge"),
-    ("nan", "NaN or infinite value"),
-    ("few", "4 measured points are not more than the 5 parameters"),
-    ("no_mesh", "give the mesh to check on with --config"),
-    ("start", "--start is outside the prior box: theta = 120 not in [0, 90]"),
-])
+@pytest.mark.parametrize(
+    "problem, expected",
+    [
+        ("outside", "lies outside the block"),
+        ("no_edge", "contains no membrane edge"),
+        ("nan", "NaN or infinite value"),
+        ("few", "4 measured points are not more than the 5 parameters"),
+        ("no_mesh", "give the mesh to check on with --config"),
+        ("start", "--start is outside the prior box: theta = 120 not in [0, 90]"),
+    ],
+)
 def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path):
     path = _measurement(tmp_path / "m.csv")
     text = path.read_text().splitlines()
@@ -119,12 +122,22 @@ def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path)
         target = patch = "inference.criticism.check.spread_start"
         error = "RuntimeError"
     script = tmp_path / "driver.py"
-    script.write_text(textwrap.dedent(DRIVER.format(error=error, target=target, patch=patch,
-                                                    measurement=measurement, out=tmp_path / "report",
-                                                    mesh_dir=mesh_dir)))
+    script.write_text(
+        textwrap.dedent(
+            DRIVER.format(
+                error=error,
+                target=target,
+                patch=patch,
+                measurement=measurement,
+                out=tmp_path / "report",
+                mesh_dir=mesh_dir,
+            )
+        )
+    )
     start = time.perf_counter()
-    res = subprocess.run([MPIRUN, "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
-                         timeout=300, env=skinid_env())
+    res = subprocess.run(
+        [MPIRUN, "-n", "2", sys.executable, str(script)], capture_output=True, text=True, timeout=300, env=skinid_env()
+    )
     seconds = time.perf_counter() - start
     lines = [line for line in res.stderr.splitlines() if "error" in line]
     assert res.returncode != 0 and len(lines) == 1, res.stderr[-2000:]
@@ -207,8 +220,9 @@ def test_one_points_designs_are_spread_over_ranks(mesh_dir, tmp_path):
     gathered fields and Jacobian equal a serial evaluation's."""
     script = tmp_path / "spread.py"
     script.write_text(SPREAD_DRIVER.format(mesh_dir=mesh_dir))
-    res = subprocess.run([MPIRUN, "-n", "2", sys.executable, str(script)], capture_output=True, text=True,
-                         timeout=300, env=skinid_env())
+    res = subprocess.run(
+        [MPIRUN, "-n", "2", sys.executable, str(script)], capture_output=True, text=True, timeout=300, env=skinid_env()
+    )
     line = next(line for line in res.stdout.splitlines() if line.startswith("COUNTS"))
     counts, diffs = line.split("DIFF")
     assert counts.split(None, 1)[1].strip() == "[1, 1]"

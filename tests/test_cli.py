@@ -17,8 +17,19 @@ DESIGN = ["--alpha", "0.05", "-0.05"]
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory, mesh_dir):
     out = tmp_path_factory.mktemp("cli") / "serial.h5"
-    res = skinid("simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out),
-                 "--fields", str(out.with_name("fields.xdmf")))
+    res = skinid(
+        "simulate",
+        "--config",
+        "small",
+        "--mesh-dir",
+        str(mesh_dir),
+        *MATERIAL,
+        *DESIGN,
+        "--out",
+        str(out),
+        "--fields",
+        str(out.with_name("fields.xdmf")),
+    )
     assert res.returncode == 0, res.stderr
     return out, res
 
@@ -43,8 +54,9 @@ def test_simulate_writes_the_dataset_contract(serial_run):
 @pytest.mark.skipif(MPIRUN is None, reason="mpirun not found")
 def test_two_ranks_equal_serial(serial_run, mesh_dir, tmp_path):
     out = tmp_path / "mpi.h5"
-    res = skinid("simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out),
-                 ranks=2)
+    res = skinid(
+        "simulate", "--config", "small", "--mesh-dir", str(mesh_dir), *MATERIAL, *DESIGN, "--out", str(out), ranks=2
+    )
     assert res.returncode == 0, res.stderr
     serial = StrainDataset.open(serial_run[0])
     parallel = StrainDataset.open(out)
@@ -62,7 +74,10 @@ def test_two_ranks_equal_serial_in_float64(small_model, mesh_dir, tmp_path):
     script = Path(__file__).with_name("mpi_simulate.py")
     res = subprocess.run(
         [MPIRUN, "-n", "2", sys.executable, str(script), str(mesh_dir), str(out)],
-        capture_output=True, text=True, env=skinid_env(), timeout=600,
+        capture_output=True,
+        text=True,
+        env=skinid_env(),
+        timeout=600,
     )
     assert res.returncode == 0, res.stderr
     frames = small_model.simulate(SkinParams(1.2e-3, 0.017, 12.0, 0.28, 30.0), Design(0.05, -0.05))
@@ -81,8 +96,11 @@ def test_two_ranks_equal_serial_in_float64(small_model, mesh_dir, tmp_path):
     ],
 )
 def test_bad_input_is_one_clear_line(tmp_path, change, message):
-    options = {"--config": ["small"], **{k: [v] for k, v in zip(MATERIAL[::2], MATERIAL[1::2])},
-               "--alpha": DESIGN[1:]} | change
+    options = {
+        "--config": ["small"],
+        **{k: [v] for k, v in zip(MATERIAL[::2], MATERIAL[1::2])},
+        "--alpha": DESIGN[1:],
+    } | change
     flat = [x for key, values in options.items() for x in (key, *values)]
     out = tmp_path / "x.h5"
     res = skinid("simulate", *flat, "--out", str(out))

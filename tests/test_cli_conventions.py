@@ -53,8 +53,11 @@ def command_parsers() -> dict[str, argparse.ArgumentParser]:
     from skinfem.cli import ROUTES
 
     roots = {"": skinfem_cli.build_parser(), "surrogate": surrogate_cli.build_parser()}
-    roots |= {name: inference_cli.build_parser(f"skinid {name}") for name, (module, _) in ROUTES.items()
-              if module == "inference.__main__"}
+    roots |= {
+        name: inference_cli.build_parser(f"skinid {name}")
+        for name, (module, _) in ROUTES.items()
+        if module == "inference.__main__"
+    }
     parsers = {}
     for prefix, parser in roots.items():
         subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
@@ -67,8 +70,11 @@ PARSERS = command_parsers()
 
 
 def visible_options(parser: argparse.ArgumentParser) -> list[argparse.Action]:
-    return [a for a in parser._actions if a.option_strings and a.help is not argparse.SUPPRESS
-            and not isinstance(a, argparse._HelpAction)]
+    return [
+        a
+        for a in parser._actions
+        if a.option_strings and a.help is not argparse.SUPPRESS and not isinstance(a, argparse._HelpAction)
+    ]
 
 
 def help_blocks(text: str) -> dict[str, str]:
@@ -110,13 +116,18 @@ def fake_dataset(path: Path) -> Path:
     designs, t = np.array([[0.05, -0.05], [0.05, 0.05]]), np.array([0.5, 1.0])
     g = np.linspace(-15, 15, 6)
     xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    create_dataset(path, config, params, designs, t, xy, np.ones(len(xy)), np.r_[np.zeros(10), np.ones(2)],
-                   "fake", bounds)
+    create_dataset(
+        path, config, params, designs, t, xy, np.ones(len(xy)), np.r_[np.zeros(10), np.ones(2)], "fake", bounds
+    )
     shape = np.exp(-(xy**2).sum(1) / 200)
     for i, u in enumerate(unit):
         for j, (a11, a22) in enumerate(designs):
-            frames = [np.column_stack([(1 + u[0]) * a11 * s * shape, (1 + u[1]) * a22 * s * shape,
-                                       0.1 * u[4] * a11 * s * shape]) for s in t]
+            frames = [
+                np.column_stack(
+                    [(1 + u[0]) * a11 * s * shape, (1 + u[1]) * a22 * s * shape, 0.1 * u[4] * a11 * s * shape]
+                )
+                for s in t
+            ]
             write_simulation(path, i, j, np.array(frames), STATUS_OK)
     return path
 
@@ -196,8 +207,10 @@ def test_merge_and_noise_force_replace_a_file(tmp_path):
     from skinfem.io import StrainDataset
 
     shard = fake_dataset(tmp_path / "shard.h5")
-    for args, out in [(["merge", shard], tmp_path / "merged.h5"),
-                      (["noise", "--data", shard, "--length", "5", "--level", "0.05"], tmp_path / "noisy.h5")]:
+    for args, out in [
+        (["merge", shard], tmp_path / "merged.h5"),
+        (["noise", "--data", shard, "--length", "5", "--level", "0.05"], tmp_path / "noisy.h5"),
+    ]:
         old_output(out)
         res = skinid(*args, "--out", out, "--force")
         assert res.returncode == 0, res.stderr

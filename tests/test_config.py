@@ -21,8 +21,7 @@ def test_converged_preset_is_the_mesh_measured_against_the_extrapolated_limit():
 
     cfg = load_config("converged")
     m, degree = cfg.mesh, cfg.solver.element_degree
-    name = (f"Q{degree} {m.h_membrane:g}/{m.h_far:g} mm, s{m.skin_layers} m{m.muscle_layers}, "
-            f"edge {m.h_edge:g} mm")
+    name = f"Q{degree} {m.h_membrane:g}/{m.h_far:g} mm, s{m.skin_layers} m{m.muscle_layers}, edge {m.h_edge:g} mm"
     result = json.loads((Path(__file__).parents[1] / "benchmarks/results/dic_convergence.json").read_text())
     errors = {row["mesh"]: row["error_vs_reference"] for row in result["paper"]["meshes"]}
     paper = load_config("paper").mesh

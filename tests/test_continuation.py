@@ -22,8 +22,9 @@ def test_prediction_is_exact_for_states_linear_in_the_parameters():
     continuation = Continuation()
     assert continuation.predict("mixed", x1, [1.0]) is None
     sensitivities = {i: (B_ref[:, i], {t: B[t][:, i] for t in a}) for i in (0, 2)}
-    continuation.record("mixed", ConvergedStates(x0, a_ref + B_ref @ x0, {t: a[t] + B[t] @ x0 for t in a},
-                                                 sensitivities))
+    continuation.record(
+        "mixed", ConvergedStates(x0, a_ref + B_ref @ x0, {t: a[t] + B[t] @ x0 for t in a}, sensitivities)
+    )
     x1[1] = x0[1]  # no sensitivity stored for parameter 1: only 0 and 2 move
     reference, guesses = continuation.predict("mixed", x1, [1.0, 0.5])
     np.testing.assert_allclose(reference, a_ref + B_ref @ x1, atol=1e-12)
@@ -49,8 +50,11 @@ def two_design_forward(config, mesh_dir, continuation):
     bounds = config.sweep.box
     g = np.linspace(-18, 18, 13)
     xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    obs = [PointSet(np.array([0.05, -0.05]), 1.0, xy), PointSet(np.array([0.05, -0.05]), 0.5, xy),
-           PointSet(np.array([-0.05, 0.05]), 1.0, xy)]
+    obs = [
+        PointSet(np.array([0.05, -0.05]), 1.0, xy),
+        PointSet(np.array([0.05, -0.05]), 0.5, xy),
+        PointSet(np.array([-0.05, 0.05]), 1.0, xy),
+    ]
     return FEForward(config, obs, bounds, mesh_dir, increments=2, comm=MPI.COMM_SELF, continuation=continuation)
 
 
@@ -66,14 +70,18 @@ def test_continued_fields_and_jacobians_equal_ramped_ones(small_config, mesh_dir
     names = warm.names[:5] + ["pre_stretch.eps_xx", "pre_stretch.eps_xy", "muscle_stiffness.log_factor"]
     x = warm.null.copy()
     x[:5] = TRUTH
-    moves = [{}, {"mu": 1e-4, "theta": 5.0}, {"k1": 1e-3, "kappa": -0.005, "pre_stretch.eps_xx": 0.04},
-             {"pre_stretch.eps_xy": 0.02, "muscle_stiffness.log_factor": 0.3, "bonding.compliance": 5.0},
-             {"k2": -1.0, "theta": 10.0}]
+    moves = [
+        {},
+        {"mu": 1e-4, "theta": 5.0},
+        {"k1": 1e-3, "kappa": -0.005, "pre_stretch.eps_xx": 0.04},
+        {"pre_stretch.eps_xy": 0.02, "muscle_stiffness.log_factor": 0.3, "bonding.compliance": 5.0},
+        {"k2": -1.0, "theta": 10.0},
+    ]
     for move in moves:
         for name, step in move.items():
             x[warm.names.index(name)] += step
-        (f_warm, j_warm), = warm.evaluate_with_jacobian([x], names)
-        (f_ramp, j_ramp), = ramped.evaluate_with_jacobian([x], names)
+        ((f_warm, j_warm),) = warm.evaluate_with_jacobian([x], names)
+        ((f_ramp, j_ramp),) = ramped.evaluate_with_jacobian([x], names)
         np.testing.assert_allclose(f_warm, f_ramp, atol=1e-8 * np.abs(f_ramp).max(), err_msg=str(move))
         np.testing.assert_allclose(j_warm, j_ramp, atol=1e-8 * np.abs(j_ramp).max(), err_msg=str(move))
     assert warm.continued == 2 * (len(moves) - 1) and ramped.continued == 0
@@ -102,8 +110,9 @@ def test_transfer_between_meshes_is_exact_for_affine_fields():
     from skinfem.fenics import dolfinx
 
     def space(n, degree):
-        mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[-1.0, -1.0, -0.5], [1.0, 1.0, 0.0]], n,
-                                       dolfinx.mesh.CellType.hexahedron)
+        mesh = dolfinx.mesh.create_box(
+            MPI.COMM_SELF, [[-1.0, -1.0, -0.5], [1.0, 1.0, 0.0]], n, dolfinx.mesh.CellType.hexahedron
+        )
         return dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (3,)))
 
     V_from, V_to = space([3, 4, 2], 1), space([5, 2, 3], 2)
@@ -114,8 +123,9 @@ def test_transfer_between_meshes_is_exact_for_affine_fields():
         u.interpolate(lambda x: scale * (A @ x + 0.01))
         return u.x.array.copy()
 
-    states = ConvergedStates(np.ones(2), affine(V_from, 0.5), {1.0: affine(V_from, 1.0)},
-                             {1: (None, {1.0: affine(V_from, 2.0)})})
+    states = ConvergedStates(
+        np.ones(2), affine(V_from, 0.5), {1.0: affine(V_from, 1.0)}, {1: (None, {1.0: affine(V_from, 2.0)})}
+    )
     moved = transfer(states, V_from, V_to)
     np.testing.assert_allclose(moved.reference, affine(V_to, 0.5), atol=1e-12)
     np.testing.assert_allclose(moved.frames[1.0], affine(V_to, 1.0), atol=1e-12)
@@ -182,8 +192,6 @@ def test_a_residual_homotopy_reaches_the_ramped_equilibrium_where_newton_fails(s
     small_model.simulate(params, design)
     ramped = small_model.u.x.array.copy()
     zero = [(1.0, np.zeros_like(ramped))]
-    assert not small_model.solve_frames(params, design, zero, max_iterations=4,
-                                        factorisation=Factorisation.FIRST_STEP)
-    assert small_model.solve_frames(params, design, zero, max_iterations=4,
-                                    factorisation=Factorisation.EVERY_STEP)
+    assert not small_model.solve_frames(params, design, zero, max_iterations=4, factorisation=Factorisation.FIRST_STEP)
+    assert small_model.solve_frames(params, design, zero, max_iterations=4, factorisation=Factorisation.EVERY_STEP)
     np.testing.assert_allclose(small_model.u.x.array, ramped, atol=1e-8 * np.abs(ramped).max())

@@ -33,8 +33,12 @@ def test_cases_cover_every_test_material_and_starting_design(data):
 
 def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
     hits = [True] * 45 + [False] * 5  # 90 % of 50
-    results = [CaseResult(rank=(1,) * 5, covered_50=(h,) * 5, covered_95=(True,) * 5,
-                          interval_share_95=(0.5,) * 5, divergences=0) for h in hits]
+    results = [
+        CaseResult(
+            rank=(1,) * 5, covered_50=(h,) * 5, covered_95=(True,) * 5, interval_share_95=(0.5,) * 5, divergences=0
+        )
+        for h in hits
+    ]
     summary = summarise(results, "single", 3, 0.0, SamplerSettings())
     mu = summary.parameters["mu"]
     assert summary.n_cases == 50
@@ -62,5 +66,7 @@ def test_a_study_ranks_the_truth_and_resumes_without_recomputing(small_emulator,
     monkeypatch.setattr(coverage, "run_case", lambda *a, **k: pytest.fail("a finished case was recomputed"))
     again = coverage_study(emulator, data, "single", settings, tmp_path, materials=[first])
     assert again.parameters == summary.parameters
-    assert json.loads((tmp_path / "coverage.json").read_text())["parameters"]["mu"]["coverage_95"] == \
-        summary.parameters["mu"].coverage_95
+    assert (
+        json.loads((tmp_path / "coverage.json").read_text())["parameters"]["mu"]["coverage_95"]
+        == summary.parameters["mu"].coverage_95
+    )

@@ -172,11 +172,41 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     from inference.synthetic import synthetic_measurements
 
     noise = NoiseModel(**NOISE)
-    files = synthetic_measurements(small_config, TRUTH, [(0.05, 0.05), (0.05, -0.05)], noise, tmp_path / "m",
-                                   PRESTRETCH, seed=5, mesh_dir=mesh_dir, increments=2)
-    command = ("check", "--emulator", small_emulator, "--measurement", *files, "--out", tmp_path / "report",
-               "--noise-length", 2.0, "--noise-nugget", 0.3, "--add", "pre_stretch", "--increments", 2,
-               "--confirm", 1, "--mesh-dir", mesh_dir, "--spacing", 2.0, "--no-discretisation")
+    files = synthetic_measurements(
+        small_config,
+        TRUTH,
+        [(0.05, 0.05), (0.05, -0.05)],
+        noise,
+        tmp_path / "m",
+        PRESTRETCH,
+        seed=5,
+        mesh_dir=mesh_dir,
+        increments=2,
+    )
+    command = (
+        "check",
+        "--emulator",
+        small_emulator,
+        "--measurement",
+        *files,
+        "--out",
+        tmp_path / "report",
+        "--noise-length",
+        2.0,
+        "--noise-nugget",
+        0.3,
+        "--add",
+        "pre_stretch",
+        "--increments",
+        2,
+        "--confirm",
+        1,
+        "--mesh-dir",
+        mesh_dir,
+        "--spacing",
+        2.0,
+        "--no-discretisation",
+    )
     res = skinid(*command, ranks=2)
     assert res.returncode == 0, res.stderr[-3000:]
     report = json.loads((tmp_path / "report" / "report.json").read_text())
@@ -203,8 +233,13 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     assert report["next_round"]["after"] == "baseline + pre_stretch"
     assert "no missing effect is needed" in report["next_round"]["verdict"]
     assert not any(c["explains"] for c in report["next_round"]["candidates"])
-    for png in ("regions.png", "candidates.png", "error_falls.png", "residual_baseline_obs0.png",
-                "residual_final_obs1.png"):
+    for png in (
+        "regions.png",
+        "candidates.png",
+        "error_falls.png",
+        "residual_baseline_obs0.png",
+        "residual_final_obs1.png",
+    ):
         assert (tmp_path / "report" / png).stat().st_size > 10_000
     assert "Most likely missing: pre_stretch" in res.stdout
 
@@ -214,8 +249,9 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     again = json.loads((tmp_path / "report" / "report.json").read_text())
     t = again["timings"]
     assert t["compare_fe_runs"] == t["diagnose_fe_runs"] == t["add_fe_runs"] == t["next_round_fe_runs"] == 0
-    assert t["fe_runs_read_from_cache"] == sum(report["timings"][k] for k in ("compare_fe_runs", "diagnose_fe_runs",
-                                                                              "add_fe_runs", "next_round_fe_runs"))
+    assert t["fe_runs_read_from_cache"] == sum(
+        report["timings"][k] for k in ("compare_fe_runs", "diagnose_fe_runs", "add_fe_runs", "next_round_fe_runs")
+    )
     for v_again, v in zip(again["versions"], report["versions"], strict=True):
         assert v_again["metrics"] == v["metrics"] and v_again["estimates"] == v["estimates"]
     assert again["candidates"] == report["candidates"]
@@ -249,8 +285,21 @@ def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emul
     path = write_measurement(tmp_path / "m.csv", xy, np.zeros((len(xy), 3)), (0.05, 0.05), 1.0)
     res = skinid("check", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "r")
     assert res.returncode == 2 and "--noise-sd" in res.stderr
-    res = skinid("check", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "r",
-                 "--noise-sd", "1e-4", "1e-4", "1e-4", "--add", "gravity")
+    res = skinid(
+        "check",
+        "--emulator",
+        small_emulator,
+        "--measurement",
+        path,
+        "--out",
+        tmp_path / "r",
+        "--noise-sd",
+        "1e-4",
+        "1e-4",
+        "1e-4",
+        "--add",
+        "gravity",
+    )
     assert res.returncode == 2 and "unknown effect 'gravity'" in res.stderr
 
 
@@ -360,8 +409,17 @@ def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_w
     a = first.best.effect
     (b,) = {"pre_stretch", "muscle_stiffness"} - {a}
     with_a = first.fits[a]
-    second = diagnose(linear_world, with_a, data, [e for e in EFFECTS if e != a], half=10.0, band=4.0,
-                      confirm=2, added=[a], max_iterations=20)
+    second = diagnose(
+        linear_world,
+        with_a,
+        data,
+        [e for e in EFFECTS if e != a],
+        half=10.0,
+        band=4.0,
+        confirm=2,
+        added=[a],
+        max_iterations=20,
+    )
     assert second.best is not None and second.best.effect == b
     assert f"--add {a} {b}" in second.text
     both = extend(linear_world, with_a, data, b, max_iterations=20)

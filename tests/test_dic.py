@@ -31,8 +31,9 @@ def box_space():
     """Q2 vector space on a box [-10, 10]^2 x [-2, 0] mm (top surface at z = 0)."""
     from skinfem.fenics import dolfinx
 
-    mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[-10, -10, -2], [10, 10, 0]], [5, 5, 2],
-                                   dolfinx.mesh.CellType.hexahedron)
+    mesh = dolfinx.mesh.create_box(
+        MPI.COMM_SELF, [[-10, -10, -2], [10, 10, 0]], [5, 5, 2], dolfinx.mesh.CellType.hexahedron
+    )
     return dolfinx.fem.functionspace(mesh, ("Lagrange", 2, (3,)))
 
 

@@ -52,9 +52,15 @@ TOLERANCE = {"DICe_solution_12.txt": 1e-5, "davis8_vectors.txt": 2e-5}
 def settings_for(fx, **changes) -> ImportSettings:
     """The import settings of a fixture (its frame and the options its extra CLI flags state)."""
     f = fx.frame
-    settings = ImportSettings(format=fx.format, mm_per_px=f.mm_per_px, centre=f.centre, rotation=f.rotation,
-                              flip_y=f.flip_y, strain="engineering" if "engineering" in fx.extra else None,
-                              percent="--percent" in fx.extra)
+    settings = ImportSettings(
+        format=fx.format,
+        mm_per_px=f.mm_per_px,
+        centre=f.centre,
+        rotation=f.rotation,
+        flip_y=f.flip_y,
+        strain="engineering" if "engineering" in fx.extra else None,
+        percent="--percent" in fx.extra,
+    )
     return dataclasses.replace(settings, **changes)
 
 
@@ -71,8 +77,9 @@ def cli(capsys, *args) -> tuple[int, str, str]:
     return code, out.out, out.err
 
 
-def table_file(path: Path, xy: np.ndarray, strain: np.ndarray, header: str = "x,y,exx,eyy,exy",
-               encoding: str = "utf-8") -> Path:
+def table_file(
+    path: Path, xy: np.ndarray, strain: np.ndarray, header: str = "x,y,exx,eyy,exy", encoding: str = "utf-8"
+) -> Path:
     """A small generic table (',' delimiter, '.' decimals)."""
     rows = [",".join(f"{v:.10g}" for v in row) for row in np.column_stack([xy, strain])]
     path.write_bytes(("\n".join([header, *rows]) + "\n").encode(encoding))
@@ -83,6 +90,7 @@ GRID = np.array([(x, y) for y in np.linspace(-12, 12, 5) for x in np.linspace(-1
 
 
 # ---------------------------------------------------------------- fixtures and formats
+
 
 def test_fixtures_are_what_make_fixtures_writes(tmp_path):
     for path in MF.write_all(tmp_path):
@@ -141,13 +149,18 @@ def test_points_outside_the_model_block_are_dropped():
 
 # ---------------------------------------------------------------- conversions
 
+
 @pytest.mark.parametrize("flip", [False, True])
 def test_rotation_is_the_tensor_rotation_closed_form(tmp_path, flip):
     e = np.array([0.03, -0.01, 0.005])  # homogeneous file-frame log strain xx, yy, xy
     path = table_file(tmp_path / "t.csv", GRID + [2, 1], np.tile(e, (len(GRID), 1)))
     deg = 35.0
-    field = load_dic(path, ImportSettings(format="table", strain="log", centre=(2.0, 1.0), rotation=deg,
-                                          flip_y=flip, table=TableOptions(units="mm")))
+    field = load_dic(
+        path,
+        ImportSettings(
+            format="table", strain="log", centre=(2.0, 1.0), rotation=deg, flip_y=flip, table=TableOptions(units="mm")
+        ),
+    )
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     sign = -1 if flip else 1
     x, y = GRID[:, 0], GRID[:, 1]
@@ -177,8 +190,9 @@ def test_strain_measures_and_the_percent_unit_are_converted(tmp_path):
     for measure, values in [("green", _green(log)), ("engineering", _biot(log)), ("log", log)]:
         for percent in (False, True):
             path = table_file(tmp_path / f"{measure}{percent}.csv", xy, values * (100 if percent else 1))
-            field = load_dic(path, ImportSettings(format="table", strain=measure, percent=percent,
-                                                  table=TableOptions(units="mm")))
+            field = load_dic(
+                path, ImportSettings(format="table", strain=measure, percent=percent, table=TableOptions(units="mm"))
+            )
             np.testing.assert_allclose(field.strain, log, atol=1e-10)
 
 
@@ -223,10 +237,41 @@ def test_table_options_say_what_detection_cannot(capsys, tmp_path):
     path = tmp_path / "export.txt"
     path.write_text("\n".join(["Stage 3 of 5", "a\tb\tc\td\te", *rows]) + "\n")
     out = tmp_path / "m.csv"
-    code, stdout, err = cli(capsys, "import", path, "--format", "table", "--skip", 1, "--delimiter", "tab",
-                            "--decimal", ",", "--columns", "a", "b", "c", "d", "e", "--units", "px",
-                            "--mm-per-px", 0.1, "--centre", 500, 500, "--strain", "log",
-                            "--alpha", 0.05, -0.02, "--t", 0.8, "--out", out)
+    code, stdout, err = cli(
+        capsys,
+        "import",
+        path,
+        "--format",
+        "table",
+        "--skip",
+        1,
+        "--delimiter",
+        "tab",
+        "--decimal",
+        ",",
+        "--columns",
+        "a",
+        "b",
+        "c",
+        "d",
+        "e",
+        "--units",
+        "px",
+        "--mm-per-px",
+        0.1,
+        "--centre",
+        500,
+        500,
+        "--strain",
+        "log",
+        "--alpha",
+        0.05,
+        -0.02,
+        "--t",
+        0.8,
+        "--out",
+        out,
+    )
     assert code == 0, err
     assert "could not decide: strain unit not stated" in stdout
     m = read_measurement(out)
@@ -241,6 +286,7 @@ def test_an_unstated_measure_must_be_given(tmp_path):
 
 
 # ---------------------------------------------------------------- plausibility
+
 
 def test_percent_read_as_fractions_is_caught_by_the_plausibility_check():
     fx = FIXTURES["table_percent.txt"]
@@ -289,9 +335,15 @@ def test_plausibility_tolerances():
 
 # ---------------------------------------------------------------- missing, duplicates, spread
 
+
 def test_missing_points_are_masked_whatever_the_format():
-    for name in ("vic3d_classic.csv", "vic2d_classic.csv", "vic9_extract.csv", "DICe_solution_12.txt",
-                 "table_decimal_comma.csv"):
+    for name in (
+        "vic3d_classic.csv",
+        "vic2d_classic.csv",
+        "vic9_extract.csv",
+        "DICe_solution_12.txt",
+        "table_decimal_comma.csv",
+    ):
         fx = FIXTURES[name]
         field = load_dic(DATA / name, settings_for(fx))
         assert field.n_missing == len(fx.missing) > 0, name
@@ -339,6 +391,7 @@ def test_collinear_or_too_few_points_are_refused(tmp_path):
 
 # ---------------------------------------------------------------- text details and bad files
 
+
 def test_latin1_table_is_read_and_said(tmp_path):
     header = "x [mm],y [mm],exx [1] - Lagrange,eyy [1] - Lagrange,exy [1] - Lagrange,angle [°]"
     path = tmp_path / "t.csv"
@@ -349,13 +402,16 @@ def test_latin1_table_is_read_and_said(tmp_path):
         load_dic(path, ImportSettings(format="table", table=TableOptions(encoding="utf-8")))
 
 
-@pytest.mark.parametrize("name, edit, message", [
-    ("vic9_extract.csv", lambda t: t + "\n" + t.split("\n", 1)[1], "several images"),
-    ("DICe_solution_12.txt", lambda t: t.replace(",VSG_STRAIN_XY", ",OTHER"), "VSG_STRAIN_XY missing"),
-    ("davis8_vectors.txt", lambda t: t.rsplit("\n", 2)[0] + "\n", "the file has 55"),
-    ("vic3d_classic.csv", lambda t: t.replace("0.0123,", "x,", 1), "'x' is not a number"),
-    ("vic3d_classic.csv", lambda t: t.replace('"exy"', '"gxy"'), "column(s) exy missing"),
-])
+@pytest.mark.parametrize(
+    "name, edit, message",
+    [
+        ("vic9_extract.csv", lambda t: t + "\n" + t.split("\n", 1)[1], "several images"),
+        ("DICe_solution_12.txt", lambda t: t.replace(",VSG_STRAIN_XY", ",OTHER"), "VSG_STRAIN_XY missing"),
+        ("davis8_vectors.txt", lambda t: t.rsplit("\n", 2)[0] + "\n", "the file has 55"),
+        ("vic3d_classic.csv", lambda t: t.replace("0.0123,", "x,", 1), "'x' is not a number"),
+        ("vic3d_classic.csv", lambda t: t.replace('"exy"', '"gxy"'), "column(s) exy missing"),
+    ],
+)
 def test_bad_files_are_one_clear_error(tmp_path, name, edit, message):
     path = tmp_path / name
     path.write_bytes(edit((DATA / name).read_bytes().decode("latin-1")).encode("latin-1"))
@@ -365,13 +421,15 @@ def test_bad_files_are_one_clear_error(tmp_path, name, edit, message):
 
 # ---------------------------------------------------------------- command line
 
+
 @pytest.mark.parametrize("name", list(FIXTURES))
 def test_cli_import_writes_a_measurement_every_command_reads(capsys, tmp_path, name):
     fx = FIXTURES[name]
     out = tmp_path / "m.csv"
     fmt = ["--format", "table"] if fx.format == "table" else []
-    code, stdout, err = cli(capsys, "import", DATA / name, *fmt, *fx.frame.options(), *fx.extra,
-                            "--alpha", *ALPHA, "--t", T, "--out", out)
+    code, stdout, err = cli(
+        capsys, "import", DATA / name, *fmt, *fx.frame.options(), *fx.extra, "--alpha", *ALPHA, "--t", T, "--out", out
+    )
     assert code == 0, err
     assert "plausible" in stdout and f"wrote {out}" in stdout
     m = read_measurement(out, half_length=25.0)
@@ -395,19 +453,23 @@ def test_cli_refuses_to_overwrite_without_force(capsys, tmp_path):
     assert cli(capsys, *args, "--force")[0] == 0 and read_measurement(out).xy.shape == (63, 2)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--centre", "612", "488"], "give the image scale with --mm-per-px"),
-    (["--mm-per-px", "0.05", "--centre", "612", "488", "--rotation", "70", "--flip-y"], "x and y swapped"),
-    (["--mm-per-px", "0.05", "--delimiter", ";"], "--delimiter applies to --format table only"),
-    (["--mm-per-px", "-1"], "--mm-per-px must be a positive number"),
-    (["--mm-per-px", "0.05", "--centre", "612", "488", "--t", "1.5"], "t = 1.5 must be in (0, 1]"),
-    (["--format", "dice", "--mm-per-px", "0.05"], "DICe column(s) COORDINATE_X, COORDINATE_Y"),
-    (["--config", "nope"], "no such preset"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--centre", "612", "488"], "give the image scale with --mm-per-px"),
+        (["--mm-per-px", "0.05", "--centre", "612", "488", "--rotation", "70", "--flip-y"], "x and y swapped"),
+        (["--mm-per-px", "0.05", "--delimiter", ";"], "--delimiter applies to --format table only"),
+        (["--mm-per-px", "-1"], "--mm-per-px must be a positive number"),
+        (["--mm-per-px", "0.05", "--centre", "612", "488", "--t", "1.5"], "t = 1.5 must be in (0, 1]"),
+        (["--format", "dice", "--mm-per-px", "0.05"], "DICe column(s) COORDINATE_X, COORDINATE_Y"),
+        (["--config", "nope"], "no such preset"),
+    ],
+)
 def test_cli_errors_are_one_line_and_exit_2(capsys, tmp_path, args, message):
     design = [] if "--t" in args else ["--t", T]
-    code, _, err = cli(capsys, "import", DATA / "vic2d_classic.csv", *args, "--alpha", *ALPHA, *design,
-                       "--out", tmp_path / "m.csv")
+    code, _, err = cli(
+        capsys, "import", DATA / "vic2d_classic.csv", *args, "--alpha", *ALPHA, *design, "--out", tmp_path / "m.csv"
+    )
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert "Traceback" not in err and not (tmp_path / "m.csv").exists()
 
@@ -420,8 +482,9 @@ def test_cli_missing_file_is_one_line(capsys, tmp_path):
 def test_cli_show_plots_an_export_and_a_measurement(capsys, tmp_path):
     fx = FIXTURES["DICe_solution_12.txt"]
     fig = tmp_path / "dice.png"
-    code, stdout, err = cli(capsys, "show", DATA / fx.name, *fx.frame.options(), "--alpha", *ALPHA, "--t", T,
-                            "--out", fig)
+    code, stdout, err = cli(
+        capsys, "show", DATA / fx.name, *fx.frame.options(), "--alpha", *ALPHA, "--t", T, "--out", fig
+    )
     assert code == 0, err
     assert fig.read_bytes().startswith(b"\x89PNG") and "plausible" in stdout
     m = tmp_path / "m.csv"

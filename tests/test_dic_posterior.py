@@ -76,8 +76,9 @@ def synthetic_strain(params: np.ndarray, bounds: np.ndarray, alpha: np.ndarray, 
     a11, a22 = alpha * t
     s = np.hypot(a11, a22)
     exx = (a11 * (1 + 0.5 * p[0]) + 0.3 * a22) * m0 + 0.5 * s * p[2] * x * y + 0.4 * s * p[4] * (x**2 - y**2)
-    eyy = ((a22 * (1 + 0.5 * p[1]) + 0.3 * a11) * m0 + 0.5 * s * p[3] * np.cos(np.pi * x)
-           + 0.4 * s * p[4] * np.sin(y) * x)
+    eyy = (
+        (a22 * (1 + 0.5 * p[1]) + 0.3 * a11) * m0 + 0.5 * s * p[3] * np.cos(np.pi * x) + 0.4 * s * p[4] * np.sin(y) * x
+    )
     exy = 0.1 * (exx - eyy) + 0.3 * s * p[4] * m0 + 0.2 * s * p[2] * y
     return np.column_stack([exx, eyy, exy])
 
@@ -109,6 +110,7 @@ def emulator(dataset, tmp_path_factory) -> Emulator:
 
 
 # ---------------------------------------------------------------- the VIC export
+
 
 def membrane_axes(rotation_deg: float, flip_y: bool) -> np.ndarray:
     """(2, 2) R whose columns are the membrane's x and y axes written in file coordinates.
@@ -142,8 +144,9 @@ def holes(n: int, seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
     return np.sort(chosen[::2]), np.sort(chosen[1::2])
 
 
-def write_vic9_px(path, xy: np.ndarray, log: np.ndarray, failed: np.ndarray, omitted: np.ndarray,
-                  flip_y: bool = False, seed: int = 11):
+def write_vic9_px(
+    path, xy: np.ndarray, log: np.ndarray, failed: np.ndarray, omitted: np.ndarray, flip_y: bool = False, seed: int = 11
+):
     """A VIC 9 extract CSV of the membrane-frame field (points [mm], log strain) in the image frame.
 
     Pixel coordinates x = c + R x' / scale; Lagrange strain in percent; an image-name line before
@@ -162,8 +165,17 @@ def write_vic9_px(path, xy: np.ndarray, log: np.ndarray, failed: np.ndarray, omi
     strain[failed], e1[failed], sigma[failed] = 0.0, 0.0, -1.0
     keep = np.setdiff1d(np.arange(len(px)), omitted)
     order = np.random.default_rng(seed).permutation(keep)
-    header = ['"x [pixel]"', '"y [pixel]"', '"u [pixel]"', '"v [pixel]"', '"exx [%] - Lagrange"',
-              '"eyy [%] - Lagrange"', '"exy [%] - Lagrange"', '"e1 [%] - Lagrange"', '"sigma [pixel]"']
+    header = [
+        '"x [pixel]"',
+        '"y [pixel]"',
+        '"u [pixel]"',
+        '"v [pixel]"',
+        '"exx [%] - Lagrange"',
+        '"eyy [%] - Lagrange"',
+        '"exy [%] - Lagrange"',
+        '"e1 [%] - Lagrange"',
+        '"sigma [pixel]"',
+    ]
     lines = ['"name-0012_0"', ",".join(header)]
     for k in order:
         row = [px[k, 0], px[k, 1], 0.0, 0.0, *strain[k], e1[k], sigma[k]]
@@ -174,6 +186,7 @@ def write_vic9_px(path, xy: np.ndarray, log: np.ndarray, failed: np.ndarray, omi
 
 # ---------------------------------------------------------------- the three measurements
 
+
 def observation_of(path, emulator: Emulator):
     """What ``skinid infer --measurement path`` observes: read, strain-scale check, mapped to cells."""
     m = read_measurement(path, emulator.provenance.block_half_length)
@@ -182,8 +195,23 @@ def observation_of(path, emulator: Emulator):
 
 
 def import_vic(capsys, vic, out, alpha, t, flip_y=False, rotation=ROTATION_DEG) -> str:
-    args = ["measurement", "import", vic, "--mm-per-px", MM_PER_PX, "--centre", *CENTRE_PX,
-            "--rotation", rotation, "--alpha", *alpha, "--t", t, "--out", out]
+    args = [
+        "measurement",
+        "import",
+        vic,
+        "--mm-per-px",
+        MM_PER_PX,
+        "--centre",
+        *CENTRE_PX,
+        "--rotation",
+        rotation,
+        "--alpha",
+        *alpha,
+        "--t",
+        t,
+        "--out",
+        out,
+    ]
     code = main([str(a) for a in args + (["--flip-y"] if flip_y else [])])
     captured = capsys.readouterr()
     assert code == 0, captured.err
@@ -224,8 +252,10 @@ def test_the_vic_import_reads_the_export_as_written(files, field, tmp_path, caps
     assert text.startswith('"name-0012_0"\n"x [pixel]"') and '"exx [%] - Lagrange"' in text
     out = import_vic(capsys, paths["vic"], tmp_path / "m.csv", alpha, t)
     n_rows = len(xy) + n_outside - len(omitted)
-    assert (f"read {n_rows} rows of {paths['vic']} (vic9): {len(failed)} missing, {n_outside} outside the model "
-            f"block (|x|, |y| <= 25 mm), {len(kept)} points kept") in out
+    assert (
+        f"read {n_rows} rows of {paths['vic']} (vic9): {len(failed)} missing, {n_outside} outside the model "
+        f"block (|x|, |y| <= 25 mm), {len(kept)} points kept"
+    ) in out
     assert "plausible:" in out and "could not decide" not in out
     imported = read_measurement(tmp_path / "m.csv", BLOCK_HALF)
     order = np.lexsort(np.round(imported.xy, 6).T)  # our cells: x fastest, then y
@@ -253,8 +283,9 @@ def test_the_imported_export_maps_onto_the_cells_like_our_csv(files, field, emul
     np.testing.assert_allclose(theirs.fields[ours.mask], ours.fields[ours.mask], rtol=0, atol=1e-8)
 
 
-def test_a_rotation_10_degrees_off_passes_the_plausibility_check_but_not_the_cells(files, field, emulator,
-                                                                                    tmp_path, capsys):
+def test_a_rotation_10_degrees_off_passes_the_plausibility_check_but_not_the_cells(
+    files, field, emulator, tmp_path, capsys
+):
     """Why a finer comparison is needed: the export read with its rotation 10 deg off passes the
     import's plausibility check, but its cells differ from our field by far more than the 1e-8
     above (the posterior test below shows what it does to the posterior)."""
@@ -269,6 +300,7 @@ def test_a_rotation_10_degrees_off_passes_the_plausibility_check_but_not_the_cel
 
 
 # ---------------------------------------------------------------- the posteriors
+
 
 @pytest.fixture(scope="module")
 def posteriors(files, field, emulator, tmp_path_factory):
@@ -286,13 +318,36 @@ def posteriors(files, field, emulator, tmp_path_factory):
     imported = {}
     for name, rotation in (("vic", ROTATION_DEG), ("rotation_off", ROTATION_DEG - 10)):
         imported[name] = folder / f"{name}.csv"
-        code = main([str(a) for a in ["measurement", "import", paths["vic"], "--mm-per-px", MM_PER_PX, "--centre",
-                                      *CENTRE_PX, "--rotation", rotation, "--alpha", *alpha, "--t", t,
-                                      "--out", imported[name]]])
+        code = main(
+            [
+                str(a)
+                for a in [
+                    "measurement",
+                    "import",
+                    paths["vic"],
+                    "--mm-per-px",
+                    MM_PER_PX,
+                    "--centre",
+                    *CENTRE_PX,
+                    "--rotation",
+                    rotation,
+                    "--alpha",
+                    *alpha,
+                    "--t",
+                    t,
+                    "--out",
+                    imported[name],
+                ]
+            ]
+        )
         assert code == 0
     out = {}
-    for name, path in (("vic", imported["vic"]), ("holed", paths["holed"]), ("full", paths["full"]),
-                       ("rotation_off", imported["rotation_off"])):
+    for name, path in (
+        ("vic", imported["vic"]),
+        ("holed", paths["holed"]),
+        ("full", paths["full"]),
+        ("rotation_off", imported["rotation_off"]),
+    ):
         observation = observation_of(path, emulator)
         observation.sd = np.full(3, NOISE_SD)
         out[name] = posterior_summary(emulator, observation)
@@ -302,10 +357,22 @@ def posteriors(files, field, emulator, tmp_path_factory):
 def posterior_summary(emulator: Emulator, observation: Observation) -> PosteriorSummary:
     """The posterior summary of one observation: what ``inference.studies.posterior_of`` does
     (same posterior and sampler call), without writing files."""
-    posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, [observation]), noise="known",
-                              gp_variance=SETTINGS.gp_variance, emulator_error=SETTINGS.emulator_error)
-    samples = sample_posterior(posterior, chains=SETTINGS.chains, warmup=SETTINGS.warmup, draws=SETTINGS.draws,
-                               seed=SETTINGS.seed, n_jobs=SETTINGS.n_jobs, progress=SETTINGS.progress)
+    posterior = SkinPosterior(
+        emulator,
+        ObservedWeights.project(emulator, [observation]),
+        noise="known",
+        gp_variance=SETTINGS.gp_variance,
+        emulator_error=SETTINGS.emulator_error,
+    )
+    samples = sample_posterior(
+        posterior,
+        chains=SETTINGS.chains,
+        warmup=SETTINGS.warmup,
+        draws=SETTINGS.draws,
+        seed=SETTINGS.seed,
+        n_jobs=SETTINGS.n_jobs,
+        progress=SETTINGS.progress,
+    )
     return samples.summary()
 
 
@@ -323,8 +390,10 @@ def agreement(a: PosteriorSummary, b: PosteriorSummary, bounds: np.ndarray) -> t
 
 def describe(a: PosteriorSummary, b: PosteriorSummary, bounds: np.ndarray) -> str:
     shift, overlap = agreement(a, b, bounds)
-    return "; ".join(f"{n}: median shift {s:.2%} of the prior range, interval overlap {o:.2f}"
-                     for n, s, o in zip(PARAM_NAMES, shift, overlap))
+    return "; ".join(
+        f"{n}: median shift {s:.2%} of the prior range, interval overlap {o:.2f}"
+        for n, s, o in zip(PARAM_NAMES, shift, overlap)
+    )
 
 
 def test_the_posteriors_are_converged_and_informative(posteriors, emulator):
@@ -357,8 +426,9 @@ def test_the_vic_export_gives_the_posterior_of_our_csv_with_the_same_holes(poste
     assert np.all(shift <= SAME_HOLES_MEDIAN), report
     assert np.all(overlap >= SAME_HOLES_OVERLAP), report
     shift, overlap = agreement(posteriors["rotation_off"], posteriors["holed"], bounds)
-    assert shift.max() > SAME_HOLES_MEDIAN and overlap.max() < SAME_HOLES_OVERLAP, \
-        describe(posteriors["rotation_off"], posteriors["holed"], bounds)
+    assert shift.max() > SAME_HOLES_MEDIAN and overlap.max() < SAME_HOLES_OVERLAP, describe(
+        posteriors["rotation_off"], posteriors["holed"], bounds
+    )
 
 
 def test_the_vic_export_gives_about_the_posterior_of_our_full_csv(posteriors, emulator):

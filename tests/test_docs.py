@@ -53,8 +53,31 @@ INLINE_CODE = re.compile(r"(`+)(.+?)\1", re.S)
 
 LANGUAGES = {"bash", "toml", "python", "text"}  # text: diagrams, file layouts, output (not run)
 #: programs a ```bash block may name that need no check (installers, version control, shell)
-OTHER_PROGRAMS = {"pip", "pip3", "git", "cd", "source", "export", "conda", "mamba", "apt", "apt-get", "sudo",
-                  "bash", "sh", "ls", "cat", "cp", "mv", "rm", "mkdir", "paraview", "sbatch", "srun", "jupyter"}
+OTHER_PROGRAMS = {
+    "pip",
+    "pip3",
+    "git",
+    "cd",
+    "source",
+    "export",
+    "conda",
+    "mamba",
+    "apt",
+    "apt-get",
+    "sudo",
+    "bash",
+    "sh",
+    "ls",
+    "cat",
+    "cp",
+    "mv",
+    "rm",
+    "mkdir",
+    "paraview",
+    "sbatch",
+    "srun",
+    "jupyter",
+}
 PACKAGE_MODULES = {"skinfem", "surrogate", "inference"}  # python -m <package> is a skinid command line
 PLACEHOLDER = re.compile(r"^(<[^<>]+>|[A-Z][A-Z0-9_]*)$")  # FILE, MU, N, <dir>: stands for any value
 ENV_ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
@@ -95,8 +118,9 @@ def _where(page: Path, line: int) -> str:
 
 
 def _params(language: str):
-    return [pytest.param(page, line, body, id=_where(page, line))
-            for page, line, lang, body in BLOCKS if lang == language]
+    return [
+        pytest.param(page, line, body, id=_where(page, line)) for page, line, lang, body in BLOCKS if lang == language
+    ]
 
 
 def _toml_blocks():
@@ -164,7 +188,7 @@ def _program(words: list[str]) -> tuple[str, list[str]]:
     if words and words[0] in ("mpirun", "mpiexec"):
         words.pop(0)
         while words and words[0].startswith("-"):
-            del words[:2 if words[0] in ("-n", "-np", "--np", "-c") else 1]
+            del words[: 2 if words[0] in ("-n", "-np", "--np", "-c") else 1]
         while words and ENV_ASSIGNMENT.match(words[0]):
             words.pop(0)
     assert words, "an empty command"
@@ -242,8 +266,9 @@ def _expansions(words: list[str]) -> tuple[list[list[str]], bool]:
 
     collect(tree, {})
     selections = [{}, {id(c): -1 for c, _ in choices if c.optional}]
-    selections += [{**reach, id(c): k} for c, reach in choices
-                   for k in range(-1 if c.optional else 1, len(c.alternatives)) if k]
+    selections += [
+        {**reach, id(c): k} for c, reach in choices for k in range(-1 if c.optional else 1, len(c.alternatives)) if k
+    ]
     variants = []
     for selection in selections:
         if (argv := expand(tree, selection)) not in variants:
@@ -334,14 +359,26 @@ def _script_parser(path: Path) -> argparse.ArgumentParser | None:
     that can run without imports, then the statements of its functions that make the parser (so
     no heavy import or computation runs). None if it builds none."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
-    namespace = {"argparse": argparse, "Path": Path, "__doc__": ast.get_docstring(tree, clean=False),
-                 "__file__": str(path), "__name__": "script_under_test"}
+    namespace = {
+        "argparse": argparse,
+        "Path": Path,
+        "__doc__": ast.get_docstring(tree, clean=False),
+        "__file__": str(path),
+        "__name__": "script_under_test",
+    }
     for node in tree.body:
         if isinstance(node, ast.Assign | ast.AnnAssign):
             with contextlib.suppress(Exception):
                 exec(compile(ast.Module([node], []), str(path), "exec"), namespace)
-    makers = {"ArgumentParser", "add_argument", "add_mutually_exclusive_group", "add_argument_group",
-              "add_subparsers", "add_parser", "set_defaults"}
+    makers = {
+        "ArgumentParser",
+        "add_argument",
+        "add_mutually_exclusive_group",
+        "add_argument_group",
+        "add_subparsers",
+        "add_parser",
+        "set_defaults",
+    }
     for function in (n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)):
         for node in function.body:
             calls = [c.func for c in ast.walk(node) if isinstance(c, ast.Call)]
@@ -417,13 +454,24 @@ def test_bash_block_commands_are_valid(page, line, body):
     assert not problems, f"{_where(page, line)}:\n" + "\n".join(problems)
 
 
-@pytest.mark.parametrize("words, expected", [
-    ("skinid info data.h5", [["info", "data.h5"]]),
-    ("skinid x --a [--b 1 | --c C] [--d]", [["x", "--a", "--b", "1", "--d"], ["x", "--a"], ["x", "--a", "--d"],
-                                            ["x", "--a", "--c", "1", "--d"], ["x", "--a", "--b", "1"]]),
-    ("skinid x --s a|b [m.csv ...]", [["x", "--s", "a", "m.csv"], ["x", "--s", "a"], ["x", "--s", "b", "m.csv"]]),
-    ("skinid x [--n | --r u|e]", [["x", "--n"], ["x"], ["x", "--r", "u"], ["x", "--r", "e"]]),
-])
+@pytest.mark.parametrize(
+    "words, expected",
+    [
+        ("skinid info data.h5", [["info", "data.h5"]]),
+        (
+            "skinid x --a [--b 1 | --c C] [--d]",
+            [
+                ["x", "--a", "--b", "1", "--d"],
+                ["x", "--a"],
+                ["x", "--a", "--d"],
+                ["x", "--a", "--c", "1", "--d"],
+                ["x", "--a", "--b", "1"],
+            ],
+        ),
+        ("skinid x --s a|b [m.csv ...]", [["x", "--s", "a", "m.csv"], ["x", "--s", "a"], ["x", "--s", "b", "m.csv"]]),
+        ("skinid x [--n | --r u|e]", [["x", "--n"], ["x"], ["x", "--r", "u"], ["x", "--r", "e"]]),
+    ],
+)
 def test_synopsis_expansion(words, expected):
     variants, elided = _expansions(shlex.split(words)[1:])
     assert variants == expected and not elided
@@ -471,8 +519,9 @@ def test_criticism_overview_effect_example_scales_the_membrane_stiffness(monkeyp
     assert [q.name for q in cls.parameters] == ["log_factor"] and cls.parameters[0].null == 0.0
     q = LaminaStiffness(Q11=10.0, Q22=5.0, Q12=2.0, Q66=3.0, G13=4.0, G23=6.0, E3=7.0)
     for factor in (1.0, 2.0):  # 1: the null value leaves the membrane unchanged
-        terms = effects.ModelTerms(skin_map=None, skin_prestretch=None, skin_bulk_ratio=20.0, muscle_mu=0.0035,
-                                   lamina=q)
+        terms = effects.ModelTerms(
+            skin_map=None, skin_prestretch=None, skin_bulk_ratio=20.0, muscle_mu=0.0035, lamina=q
+        )
         cls().apply(terms, {"log_factor": math.log(factor)})
         scaled = terms.lamina
         assert [scaled.Q11, scaled.Q22, scaled.Q12, scaled.Q66] == pytest.approx([factor * v for v in (10, 5, 2, 3)])

@@ -84,8 +84,9 @@ def test_scalar_effects_equal_the_changed_configuration(effects_model, fast_conf
     )
     reference = final_strain(SkinModel(changed, MPI.COMM_SELF, mesh_dir=mesh_dir))
     reset(effects_model)
-    effects_model.set_effects({"muscle_stiffness.log_factor": a, "compressibility.log_factor": b,
-                               "bonding.compliance": c})
+    effects_model.set_effects(
+        {"muscle_stiffness.log_factor": a, "compressibility.log_factor": b, "bonding.compliance": c}
+    )
     got = final_strain(effects_model)
     reset(effects_model)
     assert np.abs(got - reference).max() < 1e-9 * np.abs(reference).max() + 1e-12

@@ -49,8 +49,9 @@ def test_joint_covariance_is_scikit_learns_and_its_diagonal_the_variance():
         m_ref, c_ref = gp.gp.predict(x_new, return_cov=True)
         np.testing.assert_allclose(mean[:, g].numpy(), gp.y_std * m_ref + gp.y_mean, rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(cov[g].numpy(), gp.y_std**2 * c_ref, rtol=1e-8, atol=1e-12)
-    np.testing.assert_allclose(torch.diagonal(cov, dim1=-2, dim2=-1).T.numpy(), bank(torch.as_tensor(x_new))[1].numpy(),
-                               rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        torch.diagonal(cov, dim1=-2, dim2=-1).T.numpy(), bank(torch.as_tensor(x_new))[1].numpy(), rtol=1e-10, atol=1e-14
+    )
 
 
 def test_excess_variance_is_the_maximum_likelihood_closed_form():
@@ -85,6 +86,7 @@ def test_cross_validated_excess_calibrates_an_overconfident_gp_on_fresh_material
     rng = np.random.default_rng(2)
     x, y, materials = material_rows(rng, 60, 6, 0.15)
     subset = np.sort(rng.choice(len(x), 200, replace=False))
+
     def fit(x_rows, y_rows):
         return GPBank.from_sklearn([fixed_gp(x_rows, y_rows[:, g], length=1.0) for g in range(2)])
 
@@ -149,8 +151,12 @@ def test_likelihood_is_the_multivariate_normal_of_the_summed_covariances(emulato
     correlation = emulator.error_correlation(observed.design_inputs) * np.outer(load, load)
     expected = 0.0
     for g in range(mean.shape[1]):
-        cov = (gp_cov[g].detach().numpy() + tau2[g] * correlation[g] + np.diag(observed.truncation_var[:, g])
-               + np.diag(observed.noise_var[:, g]))
+        cov = (
+            gp_cov[g].detach().numpy()
+            + tau2[g] * correlation[g]
+            + np.diag(observed.truncation_var[:, g])
+            + np.diag(observed.noise_var[:, g])
+        )
         expected += multivariate_normal(mean[:, g].detach().numpy(), cov).logpdf(observed.weights[:, g])
     assert float(post.log_likelihood(params, torch.zeros(0))) == pytest.approx(expected, rel=1e-9)
 
@@ -185,18 +191,44 @@ def emulator_and_observation():
     x = rng.uniform(size=(80, 7))
     bank = GPBank.from_sklearn([fixed_gp(x, pca.transform(fields)[:, g], noise=1e-3) for g in range(2)])
     provenance = EmulatorProvenance(
-        dataset="d.h5", dataset_config="", mesh_sha256="", block_half_length=20.0, train_materials=(),
-        test_materials=(), n_training_rows=80, n_gp_rows=80, gp_fraction=1.0, restarts=0, seed=0,
-        explained_variance_ratio={}, fit_seconds={}, versions={})
-    emulator = Emulator(pcas={"xx": pca}, gps=bank, lower=np.zeros(7), upper=np.ones(7),
-                        xy=rng.uniform(-20, 20, size=(n_cells, 2)), volume=np.ones(n_cells),
-                        provenance=replace(provenance,
-                                           held_out_excess=HeldOutExcess((0.02, 0.005), (2.0, 1.4), 5, 80, 1.2)))
+        dataset="d.h5",
+        dataset_config="",
+        mesh_sha256="",
+        block_half_length=20.0,
+        train_materials=(),
+        test_materials=(),
+        n_training_rows=80,
+        n_gp_rows=80,
+        gp_fraction=1.0,
+        restarts=0,
+        seed=0,
+        explained_variance_ratio={},
+        fit_seconds={},
+        versions={},
+    )
+    emulator = Emulator(
+        pcas={"xx": pca},
+        gps=bank,
+        lower=np.zeros(7),
+        upper=np.ones(7),
+        xy=rng.uniform(-20, 20, size=(n_cells, 2)),
+        volume=np.ones(n_cells),
+        provenance=replace(provenance, held_out_excess=HeldOutExcess((0.02, 0.005), (2.0, 1.4), 5, 80, 1.2)),
+    )
     strain = np.zeros((n_cells, 3))
     mask = rng.uniform(size=n_cells) > 0.25
-    observations = [Observation(alpha=np.array([0.4, 0.5]), t=t, fields=strain + fields[k, :, None], mask=mask,
-                                sd=np.array([0.05, 0.05, 0.05]), truth=None, source=f"o{k}")
-                    for k, t in enumerate((0.5, 1.0))]
+    observations = [
+        Observation(
+            alpha=np.array([0.4, 0.5]),
+            t=t,
+            fields=strain + fields[k, :, None],
+            mask=mask,
+            sd=np.array([0.05, 0.05, 0.05]),
+            truth=None,
+            source=f"o{k}",
+        )
+        for k, t in enumerate((0.5, 1.0))
+    ]
     return emulator, ObservedWeights.project(emulator, observations)
 
 

@@ -73,8 +73,9 @@ def fake_samples(truth: bool) -> SimpleNamespace:
     centre, spread = BOUNDS.mean(1), 0.1 * np.ptp(BOUNDS, 1)
     draws = rng.normal(centre, spread, size=(2, 300, 5)).clip(BOUNDS[:, 0], BOUNDS[:, 1])
     noise_scales = rng.lognormal(size=(2, 300, 2))  # the sampler's extra (non-skin) dimensions
-    return SimpleNamespace(draws=np.concatenate([draws, noise_scales], -1), bounds=BOUNDS,
-                           truth=centre + 0.5 * spread if truth else None)
+    return SimpleNamespace(
+        draws=np.concatenate([draws, noise_scales], -1), bounds=BOUNDS, truth=centre + 0.5 * spread if truth else None
+    )
 
 
 @pytest.mark.parametrize("truth", [True, False], ids=["with_truth", "without_truth"])
@@ -104,8 +105,10 @@ def fake_results(lengths=(0.1, 1.0, 5.0), levels=(0.01, 0.05, 0.10)) -> dict:
     results = {"clean": {"noise": None, "explained_variance": ev}}
     for length in lengths:
         for level in levels:
-            results[case_name(length, level)] = {"noise": {"length_mm": length, "level": level},
-                                                 "explained_variance": ev}
+            results[case_name(length, level)] = {
+                "noise": {"length_mm": length, "level": level},
+                "explained_variance": ev,
+            }
     return results
 
 
@@ -149,16 +152,32 @@ def synthetic_emulator(seed: int = 0) -> Emulator:
     y = np.column_stack([np.sin(3 * x[:, 0] + g) + (g + 1) * x[:, 1] ** 2 for g in range(n_weights)])
     gps = GPBank.from_sklearn(fit_gps(x, y, restarts=0, n_jobs=1))
     provenance = EmulatorProvenance(
-        dataset=Path("/data/synthetic.h5"), dataset_config='name = "synthetic"\n', mesh_sha256="0" * 64,
-        block_half_length=20.0, train_materials=(0, 1), test_materials=(2,), n_training_rows=50,
-        n_gp_rows=40, gp_fraction=0.8, restarts=0, seed=seed,
+        dataset=Path("/data/synthetic.h5"),
+        dataset_config='name = "synthetic"\n',
+        mesh_sha256="0" * 64,
+        block_half_length=20.0,
+        train_materials=(0, 1),
+        test_materials=(2,),
+        n_training_rows=50,
+        n_gp_rows=40,
+        gp_fraction=0.8,
+        restarts=0,
+        seed=seed,
         explained_variance_ratio={c: tuple(p.explained_variance_ratio_[:20].tolist()) for c, p in pcas.items()},
-        fit_seconds={"total": 0.0}, versions={"skinid": "0.0.0"},
+        fit_seconds={"total": 0.0},
+        versions={"skinid": "0.0.0"},
     )
     lower = np.r_[BOUNDS[:, 0], -0.05, -0.05]
     upper = np.r_[BOUNDS[:, 1], 0.05, 0.05]
-    return Emulator(pcas=pcas, gps=gps, lower=lower, upper=upper, xy=rng.uniform(-20, 20, size=(40, 2)),
-                    volume=np.full(40, 0.5), provenance=provenance)
+    return Emulator(
+        pcas=pcas,
+        gps=gps,
+        lower=lower,
+        upper=upper,
+        xy=rng.uniform(-20, 20, size=(40, 2)),
+        volume=np.full(40, 0.5),
+        provenance=provenance,
+    )
 
 
 @pytest.fixture(scope="module")

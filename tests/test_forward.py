@@ -111,9 +111,7 @@ def test_skin_follows_membrane_on_soft_substrate(small_config, mesh_dir):
 
 def test_free_membrane_reaches_eigenstrain_without_stress():
     """A membrane block with no skin attached deforms to F = F_g and carries no stress."""
-    mesh = dolfinx.mesh.create_box(
-        MPI.COMM_SELF, [[0, 0, 0], [4, 3, 1]], [4, 3, 1], dolfinx.mesh.CellType.hexahedron
-    )
+    mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], [4, 3, 1]], [4, 3, 1], dolfinx.mesh.CellType.hexahedron)
     a11, a22 = 0.04, -0.05
     lamina = LaminaStiffness.from_config(MembraneConfig())
 

@@ -125,8 +125,9 @@ def test_sampler_matches_an_exact_linear_gaussian_posterior():
     # exact posterior of the 5 parameters
     A = emu.A.numpy()[:5].T  # (6, 5) per observation
     prec = sum(A.T @ np.diag(1 / (noise_var[o] + emu.var)) @ A for o in range(2))
-    rhs = sum(A.T @ ((w[o] - emu.b.numpy() - design[o] @ emu.A.numpy()[5:]) / (noise_var[o] + emu.var))
-              for o in range(2))
+    rhs = sum(
+        A.T @ ((w[o] - emu.b.numpy() - design[o] @ emu.A.numpy()[5:]) / (noise_var[o] + emu.var)) for o in range(2)
+    )
     cov = np.linalg.inv(prec)
     mean = cov @ rhs
     samples = sample_posterior(post, chains=2, warmup=300, draws=1500, seed=3, n_jobs=2, progress=False)
@@ -191,8 +192,14 @@ def test_warm_up_keeps_the_laplace_metric_until_a_window_has_enough_draws():
 
     torch.manual_seed(0)
     kernel = _nuts_kernel(density, inverse_mass, density.potential)
-    MCMC(kernel, num_samples=1, warmup_steps=500, initial_params={"u": torch.zeros(3, dtype=torch.float64)},
-         disable_progbar=True, hook_fn=hook).run()
+    MCMC(
+        kernel,
+        num_samples=1,
+        warmup_steps=500,
+        initial_params={"u": torch.zeros(3, dtype=torch.float64)},
+        disable_progbar=True,
+        hook_fn=hook,
+    ).run()
     changed = [i for i in range(1, len(metrics)) if not torch.equal(metrics[i], metrics[i - 1])]
     assert changed == [248, 448]  # 0-based iterations
     np.testing.assert_array_equal(metrics[247].numpy(), inverse_mass)
@@ -227,8 +234,9 @@ def held_out(emulator, data, small_cell_average_emulator, small_cell_average_dat
     cells = tmp_path_factory.mktemp("held_out_cells")
     return HeldOutPosteriors(
         surface=_held_out_summary(emulator, data, tmp_path_factory.mktemp("held_out_surface")),
-        top_cell_average=_held_out_summary(Emulator.load(small_cell_average_emulator),
-                                           StrainDataset.open(small_cell_average_dataset), cells),
+        top_cell_average=_held_out_summary(
+            Emulator.load(small_cell_average_emulator), StrainDataset.open(small_cell_average_dataset), cells
+        ),
         files=cells,
     )
 
@@ -287,8 +295,9 @@ def test_strain_measures_convert_to_log_strain():
 
 def test_measurement_round_trip_and_interpolation(emulator, data, tmp_path):
     obs = from_dataset(data, 0, designs=[2])[0]
-    path = write_measurement(tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t,
-                             sd=np.full((len(obs.fields), 3), 1e-3))
+    path = write_measurement(
+        tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t, sd=np.full((len(obs.fields), 3), 1e-3)
+    )
     m = read_measurement(path, half_length=25)
     np.testing.assert_allclose(m.strain, obs.fields, atol=1e-8)
     # on a window of the block, interpolation masks the cells outside it
@@ -299,8 +308,10 @@ def test_measurement_round_trip_and_interpolation(emulator, data, tmp_path):
     np.testing.assert_allclose(mapped.fields[mapped.mask], obs.fields[mapped.mask], atol=1e-8)
 
 
-GOOD = ("# skinid-measurement v1\n# alpha11 = 0.05\n# alpha22 = -0.05\n# t = 1.0\n"
-        "x,y,exx,eyy,exy\n0,0,0.01,0.02,0\n1,0,0.01,0.02,0\n0,1,0.01,0.02,0\n")
+GOOD = (
+    "# skinid-measurement v1\n# alpha11 = 0.05\n# alpha22 = -0.05\n# t = 1.0\n"
+    "x,y,exx,eyy,exy\n0,0,0.01,0.02,0\n1,0,0.01,0.02,0\n0,1,0.01,0.02,0\n"
+)
 
 
 @pytest.mark.parametrize(
@@ -326,8 +337,22 @@ def test_bad_measurement_files_are_refused(tmp_path, text, message):
 def test_cli_infer_from_measurement(emulator, data, tmp_path, small_emulator):
     obs = from_dataset(data, int(np.flatnonzero(data.split)[1]), designs=[2])[0]
     path = write_measurement(tmp_path / "m.csv", emulator.xy, obs.fields, obs.alpha, obs.t)
-    res = skinid("infer", "--emulator", small_emulator, "--measurement", path, "--out", tmp_path / "post",
-                 "--chains", "2", "--warmup", "100", "--draws", "100", "--quiet")
+    res = skinid(
+        "infer",
+        "--emulator",
+        small_emulator,
+        "--measurement",
+        path,
+        "--out",
+        tmp_path / "post",
+        "--chains",
+        "2",
+        "--warmup",
+        "100",
+        "--draws",
+        "100",
+        "--quiet",
+    )
     assert res.returncode == 0, res.stderr
     summary = PosteriorSummary.load(tmp_path / "post" / "summary.json")
     assert set(summary.parameters) >= {"mu", "k1", "k2", "kappa", "theta"}

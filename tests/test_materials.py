@@ -89,10 +89,7 @@ def test_fibers_do_not_act_in_compression(one_cell):
     """With kappa = 0, compression along a0 gives the same stress for k1 = 0 and k1 > 0."""
     F = deformations()["compression"]
     a0 = ufl.as_vector([1.0, 0.0, 0.0])
-    P = [
-        ufl_pk1(one_cell, lambda Fu, k1=k1: hgo_energy(Fu, MU, k1, K2, 0.0, a0, BULK), F)
-        for k1 in (0.0, 0.05)
-    ]
+    P = [ufl_pk1(one_cell, lambda Fu, k1=k1: hgo_energy(Fu, MU, k1, K2, 0.0, a0, BULK), F) for k1 in (0.0, 0.05)]
     np.testing.assert_allclose(P[0], P[1], rtol=1e-12, atol=1e-15)
     Ft = np.diag([1.1, 1.1**-0.5, 1.1**-0.5])  # tension: fibers must act
     Pt = [ufl_pk1(one_cell, lambda Fu, k1=k1: hgo_energy(Fu, MU, k1, K2, 0.0, a0, BULK), Ft) for k1 in (0.0, 0.05)]
@@ -126,8 +123,6 @@ def test_membrane_is_stress_free_at_its_eigenstrain(one_cell):
 def test_lamina_stiffness_is_plane_stress():
     m = MembraneConfig()
     q = LaminaStiffness.from_config(m)
-    compliance = np.array(
-        [[1 / m.E1, -m.nu12 / m.E1, 0], [-m.nu12 / m.E1, 1 / m.E2, 0], [0, 0, 1 / m.G12]]
-    )
+    compliance = np.array([[1 / m.E1, -m.nu12 / m.E1, 0], [-m.nu12 / m.E1, 1 / m.E2, 0], [0, 0, 1 / m.G12]])
     Q = np.array([[q.Q11, q.Q12, 0], [q.Q12, q.Q22, 0], [0, 0, q.Q66]])
     np.testing.assert_allclose(Q @ compliance, np.eye(3), atol=1e-12)

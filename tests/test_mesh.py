@@ -75,8 +75,6 @@ def test_small_mesh_counts_and_groups(tmp_path):
 
 
 def test_rigid_membrane_mesh_has_no_membrane(tmp_path):
-    cfg = Config().with_changes(
-        mesh={"h_membrane": 2.0, "h_far": 6.0, "muscle_layers": 2}, membrane={"model": "rigid"}
-    )
+    cfg = Config().with_changes(mesh={"h_membrane": 2.0, "h_far": 6.0, "muscle_layers": 2}, membrane={"model": "rigid"})
     info = build_mesh(cfg, tmp_path / "r.msh")
     assert info.n_cells == 3 * info.n_skin_cells

@@ -63,14 +63,20 @@ def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
 
     data = StrainDataset.open(small_dataset)
     settings = SamplerSettings(chains=2, warmup=100, draws=100, n_jobs=2, gp_variance="mode", progress=False)
-    results = noise_study(data, tmp_path, design=2, settings=settings, lengths=(1.0,), levels=(0.05,),
-                          materials=[int(np.flatnonzero(data.split)[0])],
-                          fit_options={"gp_fraction": 0.3, "restarts": 0})
+    results = noise_study(
+        data,
+        tmp_path,
+        design=2,
+        settings=settings,
+        lengths=(1.0,),
+        levels=(0.05,),
+        materials=[int(np.flatnonzero(data.split)[0])],
+        fit_options={"gp_fraction": 0.3, "restarts": 0},
+    )
     assert set(results) == {"clean", "m5"}
     for c in ("xx", "yy"):
         assert results["m5"]["explained_variance"][c][2] < results["clean"]["explained_variance"][c][2]
     report = (tmp_path / "README.md").read_text()
     assert "| m5 |" in report and "Paper (noise)" in report
-    for name in ("explained_variance.png", "sensitivity.png", "noise_study.json",
-                 "cases/m5/posteriors/accuracy.png"):
+    for name in ("explained_variance.png", "sensitivity.png", "noise_study.json", "cases/m5/posteriors/accuracy.png"):
         assert (tmp_path / name).exists(), name

@@ -29,7 +29,8 @@ def test_notebook_runs(path, small_dataset, small_emulator, mesh_dir, tmp_path, 
     monkeypatch.setenv("SKINID_NOTEBOOK_OUT", str(tmp_path))
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     notebook = jupytext.read(path)
-    client = NotebookClient(notebook, timeout=900, kernel_name="python3",
-                            resources={"metadata": {"path": str(tmp_path)}})
+    client = NotebookClient(
+        notebook, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    )
     client.execute()  # raises CellExecutionError naming the cell that failed
     assert any(cell.get("outputs") for cell in notebook.cells if cell.cell_type == "code")

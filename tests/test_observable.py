@@ -23,8 +23,9 @@ DESIGN = Design(0.05, -0.05)
 
 def top_cells_of_box(degree: int):
     """A displacement space on a 2-layer hexahedral box [-3, 3]^2 x [-1, 0] and its top cells."""
-    mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[-3, -3, -1], [3, 3, 0]], [4, 3, 2],
-                                   dolfinx.mesh.CellType.hexahedron)
+    mesh = dolfinx.mesh.create_box(
+        MPI.COMM_SELF, [[-3, -3, -1], [3, 3, 0]], [4, 3, 2], dolfinx.mesh.CellType.hexahedron
+    )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (3,)))
     n = mesh.topology.index_map(3).size_local
     centroids = mesh.geometry.x[mesh.geometry.dofmaps[0][:n]].mean(axis=1)
@@ -67,8 +68,9 @@ def layer_series(small_config, mesh_dir):
     out = {}
     for kind in ("surface", "top_cell_average"):
         for layers in (1, 2):
-            config = small_config.with_changes(mesh={"skin_layers": layers}, observable={"kind": kind},
-                                               solver={"increments": 2})
+            config = small_config.with_changes(
+                mesh={"skin_layers": layers}, observable={"kind": kind}, solver={"increments": 2}
+            )
             frames = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir).simulate(PARAMS, DESIGN)
             out[kind, layers] = frames.strain[-1], frames.xy
     return out
@@ -93,6 +95,7 @@ def test_the_surface_under_the_membrane_carries_its_eigenstrain(layer_series):
 def test_the_surface_strain_moves_less_than_the_cell_average_through_the_thickness(layer_series):
     """Doubling the skin layers (1 -> 2, Q1 `small`) moves the surface field a quarter as much
     as the top-cell average (measured: 6 % vs 23 %, relative RMS)."""
+
     def change(kind):
         a, b = layer_series[kind, 1][0], layer_series[kind, 2][0]
         return np.sqrt(np.mean((b - a) ** 2) / np.mean(a**2))
@@ -105,8 +108,13 @@ def test_the_surface_strain_moves_less_than_the_cell_average_through_the_thickne
 def test_the_surface_observable_on_two_ranks_equals_serial(small_config, mesh_dir, tmp_path):
     out = tmp_path / "mpi.npy"
     script = Path(__file__).with_name("mpi_simulate.py")
-    res = subprocess.run([MPIRUN, "-n", "2", sys.executable, str(script), str(mesh_dir), str(out), "surface"],
-                         capture_output=True, text=True, env=skinid_env(), timeout=600)
+    res = subprocess.run(
+        [MPIRUN, "-n", "2", sys.executable, str(script), str(mesh_dir), str(out), "surface"],
+        capture_output=True,
+        text=True,
+        env=skinid_env(),
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr
     config = small_config.with_changes(observable={"kind": "surface"})
     frames = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir).simulate(PARAMS, DESIGN)
@@ -117,15 +125,28 @@ def test_the_surface_observable_on_two_ranks_equals_serial(small_config, mesh_di
 def simulate_one(config, out: Path, mesh_dir) -> None:
     """`skinid simulate` of PARAMS, DESIGN with ``config`` (preset or TOML path) into ``out``."""
     material = [f"--{name}={value}" for name, value in zip(("mu", "k1", "k2", "kappa", "theta"), PARAMS.as_array())]
-    res = skinid("simulate", "--config", str(config), "--mesh-dir", str(mesh_dir), *material,
-                 "--alpha", str(DESIGN.alpha11), str(DESIGN.alpha22), "--out", str(out))
+    res = skinid(
+        "simulate",
+        "--config",
+        str(config),
+        "--mesh-dir",
+        str(mesh_dir),
+        *material,
+        "--alpha",
+        str(DESIGN.alpha11),
+        str(DESIGN.alpha22),
+        "--out",
+        str(out),
+    )
     assert res.returncode == 0, res.stderr
 
 
 def test_a_dataset_records_its_observable(tmp_path, mesh_dir):
     config = tmp_path / "surface.toml"
-    config.write_text('name = "small_surface"\n[mesh]\nh_membrane = 2.0\nh_far = 6.0\nmuscle_layers = 2\n'
-                      '[observable]\nkind = "surface"\n[solver]\nincrements = 2\n')
+    config.write_text(
+        'name = "small_surface"\n[mesh]\nh_membrane = 2.0\nh_far = 6.0\nmuscle_layers = 2\n'
+        '[observable]\nkind = "surface"\n[solver]\nincrements = 2\n'
+    )
     out = tmp_path / "one.h5"
     simulate_one(config, out, mesh_dir)
     ds = StrainDataset.open(out)

@@ -48,8 +48,18 @@ def test_a_subset_dataset_holds_the_same_values_on_the_kept_cells(paper_mesh, tm
     rng = np.random.default_rng(1)
     params = rng.uniform(size=(3, 5))
     path = tmp_path / "full.h5"
-    create_dataset(path, config, params, np.array([[0.05, -0.05]]), np.array([0.5, 1.0]), xy, np.ones(len(xy)),
-                   np.array([0, 0, 1]), "sha", np.stack([np.zeros(5), np.ones(5)], 1))
+    create_dataset(
+        path,
+        config,
+        params,
+        np.array([[0.05, -0.05]]),
+        np.array([0.5, 1.0]),
+        xy,
+        np.ones(len(xy)),
+        np.array([0, 0, 1]),
+        "sha",
+        np.stack([np.zeros(5), np.ones(5)], 1),
+    )
     fields = rng.normal(size=(2, 2, len(xy), 3))
     write_simulation(path, 0, 0, fields[0], STATUS_OK)
     write_simulation(path, 1, 0, None, STATUS_FAILED, "diverged")
@@ -65,12 +75,18 @@ def test_a_subset_dataset_holds_the_same_values_on_the_kept_cells(paper_mesh, tm
 def test_the_side_by_side_table_has_a_row_per_case_and_run(paper_mesh, tmp_path):
     def study(width: float, covered: float, identified: bool) -> dict:
         names = paper_mesh.PARAMS
-        return {"study": {"median_interval_share_of_prior": dict.fromkeys(names, width),
-                          "coverage_95": dict.fromkeys(names, covered),
-                          "identified": dict.fromkeys(names, identified)}}
+        return {
+            "study": {
+                "median_interval_share_of_prior": dict.fromkeys(names, width),
+                "coverage_95": dict.fromkeys(names, covered),
+                "identified": dict.fromkeys(names, identified),
+            }
+        }
 
-    for label, results in (("a", {"clean": study(0.1, 1.0, True), "s1": study(0.9, 0.95, False)}),
-                           ("b", {"clean": study(0.2, 0.9, True)})):
+    for label, results in (
+        ("a", {"clean": study(0.1, 1.0, True), "s1": study(0.9, 0.95, False)}),
+        ("b", {"clean": study(0.2, 0.9, True)}),
+    ):
         (tmp_path / label).mkdir()
         (tmp_path / label / "noise_study.json").write_text(json.dumps(results))
     runs = [paper_mesh.StudyRun.read(f"{k}={tmp_path / k}") for k in "ab"]

@@ -86,8 +86,7 @@ def known_run(emulator, dataset, tmp_path_factory):
     """Known noise (a stated sd), GP variance fixed at the mode, one observation."""
     observations = from_dataset(dataset, 11, designs=[1], frames=[-1])
     observations[0].sd = np.array([1e-4, 2e-4, 1e-4])
-    return sampled(emulator, observations, tmp_path_factory.mktemp("post_known"), noise="known",
-                   gp_variance="mode")
+    return sampled(emulator, observations, tmp_path_factory.mktemp("post_known"), noise="known", gp_variance="mode")
 
 
 # -- the file ----------------------------------------------------------------------------------
@@ -176,8 +175,9 @@ def test_known_noise_and_fixed_gp_variance_are_recorded(known_run):
     np.testing.assert_allclose(constant["noise_sd"], np.sqrt(post.noise_var.numpy()).ravel())
     gp = torch.diagonal(post.fixed_gp_cov, dim1=-2, dim2=-1).T  # (n_obs, G)
     np.testing.assert_allclose(constant["gp_variance"], gp.numpy().ravel())
-    np.testing.assert_allclose(constant["held_out_excess"],
-                               np.tile(post.emulator.held_out_excess.variance, len(post.weights)))
+    np.testing.assert_allclose(
+        constant["held_out_excess"], np.tile(post.emulator.held_out_excess.variance, len(post.weights))
+    )
     assert dt.attrs["emulator_error"] == "on"
     np.testing.assert_allclose(constant["stated_sd"], [[1e-4, 2e-4, 1e-4]])
     assert set(dt["posterior"].data_vars) == set(PARAM_NAMES)
@@ -186,18 +186,32 @@ def test_known_noise_and_fixed_gp_variance_are_recorded(known_run):
 
 # -- bad input: one line, exit code 2 -------------------------------------------------------------
 def infer(capsys, emulator_dir, tmp_path, measurement) -> tuple[int, list[str]]:
-    code = main(["infer", "--emulator", str(emulator_dir), "--measurement", str(measurement),
-                 "--out", str(tmp_path / "post"), "--quiet"])
+    code = main(
+        [
+            "infer",
+            "--emulator",
+            str(emulator_dir),
+            "--measurement",
+            str(measurement),
+            "--out",
+            str(tmp_path / "post"),
+            "--quiet",
+        ]
+    )
     return code, capsys.readouterr().err.strip().splitlines()
 
 
-@pytest.mark.parametrize("alpha, t, message", [
-    ((0.08, -0.05), 1.0, "alpha11*t = 0.08 is outside the emulator's training range [0.025, 0.05] of alpha11*t"),
-    ((0.05, -0.05), 0.25, "alpha11*t = 0.0125 is outside the emulator's training range [0.025, 0.05]"),
-    ((0.05, 0.07), 1.0, "alpha22*t = 0.07 is outside the emulator's training range [-0.05, 0.05]"),
-])
-def test_designs_and_frames_outside_the_training_range_are_refused(capsys, emulator, emulator_dir, tmp_path,
-                                                                   alpha, t, message):
+@pytest.mark.parametrize(
+    "alpha, t, message",
+    [
+        ((0.08, -0.05), 1.0, "alpha11*t = 0.08 is outside the emulator's training range [0.025, 0.05] of alpha11*t"),
+        ((0.05, -0.05), 0.25, "alpha11*t = 0.0125 is outside the emulator's training range [0.025, 0.05]"),
+        ((0.05, 0.07), 1.0, "alpha22*t = 0.07 is outside the emulator's training range [-0.05, 0.05]"),
+    ],
+)
+def test_designs_and_frames_outside_the_training_range_are_refused(
+    capsys, emulator, emulator_dir, tmp_path, alpha, t, message
+):
     strain = np.zeros((len(emulator.xy), 3))
     path = write_measurement(tmp_path / "m.csv", emulator.xy, strain, alpha, t)
     code, lines = infer(capsys, emulator_dir, tmp_path, path)
@@ -213,10 +227,14 @@ def test_a_zero_stated_noise_sd_is_refused(capsys, emulator, emulator_dir, tmp_p
     code, lines = infer(capsys, emulator_dir, tmp_path, path)
     assert code == 2 and len(lines) == 1 and "standard deviations must be > 0" in lines[0]
     # observations made through the API are checked when they are projected
-    observation = Observation(np.array([0.05, 0.0]), 1.0, strain, np.ones(len(strain), bool), sd=np.zeros(3),
-                              source="api")
-    with pytest.raises(ValueError, match=r"api \(alpha11 = 0.05, alpha22 = 0, t = 1\): the stated noise sd "
-                                         r"\[0.0, 0.0, 0.0\] \(xx, yy, xy\) must be positive and finite"):
+    observation = Observation(
+        np.array([0.05, 0.0]), 1.0, strain, np.ones(len(strain), bool), sd=np.zeros(3), source="api"
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"api \(alpha11 = 0.05, alpha22 = 0, t = 1\): the stated noise sd "
+        r"\[0.0, 0.0, 0.0\] \(xx, yy, xy\) must be positive and finite",
+    ):
         ObservedWeights.project(emulator, [observation])
 
 

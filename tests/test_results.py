@@ -37,28 +37,81 @@ NAMES = ("mu", "k1", "k2", "kappa", "theta", "sigma_xx", "sigma_yy")
 
 
 def skin_entry(median, lo, hi, r_hat, bulk, tail, k, true):
-    return {"median": median, "q2.5": lo, "q97.5": hi, "r_hat": r_hat, "ess_bulk": bulk, "ess_tail": tail,
-            "prior": BOUNDS[k].tolist(), "interval_share_of_prior": (hi - lo) / float(np.ptp(BOUNDS[k])),
-            "true": true, "covered": lo <= true <= hi}
+    return {
+        "median": median,
+        "q2.5": lo,
+        "q97.5": hi,
+        "r_hat": r_hat,
+        "ess_bulk": bulk,
+        "ess_tail": tail,
+        "prior": BOUNDS[k].tolist(),
+        "interval_share_of_prior": (hi - lo) / float(np.ptp(BOUNDS[k])),
+        "true": true,
+        "covered": lo <= true <= hi,
+    }
 
 
 # summary.json of a held-out small-mesh material (benchmarks/results/small_heldout_posterior_summary.json)
 # with what later versions added: acceptance rates, the error budget and its statement, a model warning
 SUMMARY_JSON = {
     "parameters": {
-        "mu": skin_entry(0.0009140805727651988, 0.0007404027526394722, 0.001019260437174447, 1.001468358514202,
-                         990.3842219365407, 1026.9717413509036, 0, 0.000977387273495196),
-        "k1": skin_entry(0.014539057007493039, 0.011848835580904339, 0.021086010433808033, 1.002417753157047,
-                         781.0649902514588, 680.913479669173, 1, 0.013164124960430403),
-        "k2": skin_entry(11.331147427655342, 8.472589365502673, 15.040205069214458, 1.0017090837307547,
-                         2648.3332313844644, 2171.0564112481384, 2, 13.834490045784058),
-        "kappa": skin_entry(0.2908292880156819, 0.2735642127603114, 0.29963706379203564, 1.002608956345265,
-                            1462.6398563740734, 1594.986324655345, 3, 0.2851),
+        "mu": skin_entry(
+            0.0009140805727651988,
+            0.0007404027526394722,
+            0.001019260437174447,
+            1.001468358514202,
+            990.3842219365407,
+            1026.9717413509036,
+            0,
+            0.000977387273495196,
+        ),
+        "k1": skin_entry(
+            0.014539057007493039,
+            0.011848835580904339,
+            0.021086010433808033,
+            1.002417753157047,
+            781.0649902514588,
+            680.913479669173,
+            1,
+            0.013164124960430403,
+        ),
+        "k2": skin_entry(
+            11.331147427655342,
+            8.472589365502673,
+            15.040205069214458,
+            1.0017090837307547,
+            2648.3332313844644,
+            2171.0564112481384,
+            2,
+            13.834490045784058,
+        ),
+        "kappa": skin_entry(
+            0.2908292880156819,
+            0.2735642127603114,
+            0.29963706379203564,
+            1.002608956345265,
+            1462.6398563740734,
+            1594.986324655345,
+            3,
+            0.2851,
+        ),
         "theta": skin_entry(41.2, 8.1, 86.3, 1.0123, 350.2, 512.9, 4, 88.0),
-        "sigma_xx": {"median": 0.0123, "q2.5": 0.0011, "q97.5": 0.2, "r_hat": 1.0004, "ess_bulk": 1500.5,
-                     "ess_tail": 1200.25},
-        "sigma_yy": {"median": 0.0098, "q2.5": 0.0009, "q97.5": 0.15, "r_hat": 1.0, "ess_bulk": 1711.0,
-                     "ess_tail": 1300.0},
+        "sigma_xx": {
+            "median": 0.0123,
+            "q2.5": 0.0011,
+            "q97.5": 0.2,
+            "r_hat": 1.0004,
+            "ess_bulk": 1500.5,
+            "ess_tail": 1200.25,
+        },
+        "sigma_yy": {
+            "median": 0.0098,
+            "q2.5": 0.0009,
+            "q97.5": 0.15,
+            "r_hat": 1.0,
+            "ess_bulk": 1711.0,
+            "ess_tail": 1300.0,
+        },
     },
     "chains": 4,
     "draws_per_chain": 1000,
@@ -69,8 +122,12 @@ SUMMARY_JSON = {
     "gp_variance_over_posterior": {"ratio_median": 1.02, "ratio_5": 0.81, "ratio_95": 1.3},
     "error_budget": {"noise": 0.05, "gp": 0.3, "held_out_excess": 0.25, "truncation": 0.4},
     "error_budget_statement": "the emulator's PCA truncation, not your measurement, limits these intervals (...)",
-    "warnings": ["this emulator has no held-out error model (...)", "theta: R-hat 1.012 > 1.01 (chains disagree; "
-                 "sample longer)", "theta: ESS 350 < 400", "2 divergent transitions"],
+    "warnings": [
+        "this emulator has no held-out error model (...)",
+        "theta: R-hat 1.012 > 1.01 (chains disagree; sample longer)",
+        "theta: ESS 350 < 400",
+        "2 divergent transitions",
+    ],
     "observations": ["small.h5 material 4, design 7 (0.05, -0.05), frame 9"],
 }
 
@@ -83,8 +140,12 @@ def test_summary_round_trips_through_its_json_unchanged(tmp_path):
     assert path.read_text() == json.dumps(SUMMARY_JSON, indent=2) + "\n"
     assert PosteriorSummary.load(path) == summary
     mu, theta, sigma = summary.parameters["mu"], summary.parameters["theta"], summary.parameters["sigma_xx"]
-    assert (mu.q2_5, mu.q97_5, mu.prior, mu.covered) == (0.0007404027526394722, 0.001019260437174447,
-                                                          (0.000543, 0.00206), True)
+    assert (mu.q2_5, mu.q97_5, mu.prior, mu.covered) == (
+        0.0007404027526394722,
+        0.001019260437174447,
+        (0.000543, 0.00206),
+        True,
+    )
     assert theta.ess == 350.2 and summary.max_r_hat == 1.0123 and summary.min_ess == 350.2
     assert sigma.prior is None and sigma.true is None and sigma.covered is None
     for name, entry in SUMMARY_JSON["parameters"].items():  # the skin parameters' keys, then the sigmas' fewer
@@ -103,21 +164,35 @@ def test_summaries_of_earlier_versions_load():
     assert summary.parameters["mu"].covered and summary.observations
 
 
-def fake_samples(truth: bool = True, budget: bool = True, spread: bool = True,
-                 model_warnings: tuple[str, ...] = ()) -> PosteriorSamples:
+def fake_samples(
+    truth: bool = True, budget: bool = True, spread: bool = True, model_warnings: tuple[str, ...] = ()
+) -> PosteriorSamples:
     """Uniform draws over the prior box (mu ... theta) and lognormal sigmas; no sampler."""
     rng = np.random.default_rng(0)
-    draws = np.concatenate([BOUNDS[:, 0] + rng.uniform(size=(4, 300, 5)) * np.ptp(BOUNDS, 1),
-                            np.exp(rng.normal(size=(4, 300, 2)))], -1)
+    draws = np.concatenate(
+        [BOUNDS[:, 0] + rng.uniform(size=(4, 300, 5)) * np.ptp(BOUNDS, 1), np.exp(rng.normal(size=(4, 300, 2)))], -1
+    )
     diverging = np.zeros((4, 300), bool)
     diverging[1, 5] = True
     return PosteriorSamples(
-        names=NAMES, draws=draws, diverging=diverging, step_sizes=[0.31, 0.29, 0.33, 0.3], seconds=12.5,
-        truth=draws[0, 0, :5] if truth else None, bounds=BOUNDS, acceptance_rates=[0.8, 0.85, 0.79, 0.9], stats={},
-        log_likelihood=np.zeros((4, 300, 1, 1)), prior=np.zeros((10, 7)), data={}, attrs={},
+        names=NAMES,
+        draws=draws,
+        diverging=diverging,
+        step_sizes=[0.31, 0.29, 0.33, 0.3],
+        seconds=12.5,
+        truth=draws[0, 0, :5] if truth else None,
+        bounds=BOUNDS,
+        acceptance_rates=[0.8, 0.85, 0.79, 0.9],
+        stats={},
+        log_likelihood=np.zeros((4, 300, 1, 1)),
+        prior=np.zeros((10, 7)),
+        data={},
+        attrs={},
         gp_variance_spread={"ratio_median": 1.01, "ratio_5": 0.9, "ratio_95": 1.2} if spread else None,
-        error_budget=ErrorBudget(0.2, 0.3, 0.1, 0.4) if budget else None, error_budget_at=draws[0, 1, :5],
-        model_warnings=model_warnings)
+        error_budget=ErrorBudget(0.2, 0.3, 0.1, 0.4) if budget else None,
+        error_budget_at=draws[0, 1, :5],
+        model_warnings=model_warnings,
+    )
 
 
 def legacy_summary(samples: PosteriorSamples) -> dict:
@@ -129,9 +204,14 @@ def legacy_summary(samples: PosteriorSamples) -> dict:
     out = {}
     for k, n in enumerate(samples.names):
         x = samples.draws[..., k].ravel()
-        e = {"median": float(np.median(x)), "q2.5": float(np.percentile(x, 2.5)),
-             "q97.5": float(np.percentile(x, 97.5)), "r_hat": float(rhat[n].values),
-             "ess_bulk": float(bulk[n].values), "ess_tail": float(tail[n].values)}
+        e = {
+            "median": float(np.median(x)),
+            "q2.5": float(np.percentile(x, 2.5)),
+            "q97.5": float(np.percentile(x, 97.5)),
+            "r_hat": float(rhat[n].values),
+            "ess_bulk": float(bulk[n].values),
+            "ess_tail": float(tail[n].values),
+        }
         if k < 5:
             e["prior"] = samples.bounds[k].tolist()
             e["interval_share_of_prior"] = (e["q97.5"] - e["q2.5"]) / float(np.ptp(samples.bounds[k]))
@@ -148,12 +228,19 @@ def legacy_summary(samples: PosteriorSamples) -> dict:
     if samples.diverging.any():
         messages.append(f"{int(samples.diverging.sum())} divergent transitions")
     budget = samples.error_budget
-    return {"parameters": out, "chains": 4, "draws_per_chain": 300, "divergences": int(samples.diverging.sum()),
-            "step_sizes": samples.step_sizes, "acceptance_rates": samples.acceptance_rates,
-            "seconds": samples.seconds, "gp_variance_over_posterior": samples.gp_variance_spread,
-            "error_budget": None if budget is None else asdict(budget),
-            "error_budget_statement": None if budget is None else budget.statement(samples.error_budget_at),
-            "warnings": messages}
+    return {
+        "parameters": out,
+        "chains": 4,
+        "draws_per_chain": 300,
+        "divergences": int(samples.diverging.sum()),
+        "step_sizes": samples.step_sizes,
+        "acceptance_rates": samples.acceptance_rates,
+        "seconds": samples.seconds,
+        "gp_variance_over_posterior": samples.gp_variance_spread,
+        "error_budget": None if budget is None else asdict(budget),
+        "error_budget_statement": None if budget is None else budget.statement(samples.error_budget_at),
+        "warnings": messages,
+    }
 
 
 @pytest.mark.parametrize("known", [True, False], ids=["truth-budget-spread", "none-of-them"])
@@ -174,8 +261,10 @@ def legacy_print_summary(summary: dict, out: Path) -> None:
     print(f"{'':>8} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
     for name, e in summary["parameters"].items():
         true = f"{e['true']:.4g}" if "true" in e else ""
-        print(f"{name:>8} {e['median']:>10.4g} [{e['q2.5']:>10.4g}, {e['q97.5']:>10.4g}] "
-              f"{e['r_hat']:>6.3f} {min(e['ess_bulk'], e['ess_tail']):>6.0f} {true:>10}")
+        print(
+            f"{name:>8} {e['median']:>10.4g} [{e['q2.5']:>10.4g}, {e['q97.5']:>10.4g}] "
+            f"{e['r_hat']:>6.3f} {min(e['ess_bulk'], e['ess_tail']):>6.0f} {true:>10}"
+        )
     for w in summary["warnings"]:
         print(f"warning: {w}")
     if summary.get("error_budget_statement"):
@@ -205,8 +294,9 @@ def test_test_set_study_resumes_from_summary_files(tmp_path, monkeypatch):
         (tmp_path / f"material_{i:03d}").mkdir()
         s.write(tmp_path / f"material_{i:03d}" / "summary.json")
     monkeypatch.setattr(studies, "posterior_of", lambda *args, **kwargs: pytest.fail("sampled a finished material"))
-    result = studies.test_set_study(SimpleNamespace(param_bounds=BOUNDS), None, [7], [-1], studies.SamplerSettings(),
-                                    tmp_path, materials=[3, 5])
+    result = studies.test_set_study(
+        SimpleNamespace(param_bounds=BOUNDS), None, [7], [-1], studies.SamplerSettings(), tmp_path, materials=[3, 5]
+    )
     mu = [s.parameters["mu"] for s in summaries.values()]
     assert result["coverage_95"]["mu"] == np.mean([p.covered for p in mu])
     assert result["median_interval_share_of_prior"]["mu"] == np.median([p.interval_share_of_prior for p in mu])
@@ -219,12 +309,16 @@ def test_write_outputs_returns_what_summary_json_holds(tmp_path, monkeypatch):
     import inference.plots
 
     samples = fake_samples()
-    monkeypatch.setattr(PosteriorSamples, "inference_data", lambda self: SimpleNamespace(
-        to_netcdf=lambda path: Path(path).write_bytes(b"")))
+    monkeypatch.setattr(
+        PosteriorSamples,
+        "inference_data",
+        lambda self: SimpleNamespace(to_netcdf=lambda path: Path(path).write_bytes(b"")),
+    )
     monkeypatch.setattr(inference.plots, "corner_plot", lambda samples, path: Path(path).write_bytes(b""))
     summary = write_outputs(samples, tmp_path / "post", ["m.csv"])
     assert (tmp_path / "post" / "summary.json").read_text() == json.dumps(
-        {**legacy_summary(samples), "observations": ["m.csv"]}, indent=2) + "\n"
+        {**legacy_summary(samples), "observations": ["m.csv"]}, indent=2
+    ) + "\n"
     assert PosteriorSummary.load(tmp_path / "post" / "summary.json") == summary
 
 
@@ -233,12 +327,26 @@ VALIDATION_JSON = {
     "test_materials": [4, 9, 17],
     "n_rows": 378,
     "components": {
-        "xx": {"r2_per_pc": [0.99991, 0.99962, 0.99874, 0.99315], "min_r2": 0.99315, "field_rmse": 0.000412,
-               "field_rmse_relative": 0.0121, "pca_floor_rmse": 0.000355, "field_max_abs_error": 0.0042,
-               "field_rms": 0.034, "weight_z_rms": [0.91, 1.12, 1.3, 0.77]},
-        "yy": {"r2_per_pc": [0.99988, 0.9993, 0.9951], "min_r2": 0.9951, "field_rmse": 0.000388,
-               "field_rmse_relative": 0.0117, "pca_floor_rmse": 0.00031, "field_max_abs_error": 0.0039,
-               "field_rms": 0.0331, "weight_z_rms": [1.05, 0.98, 1.41]},
+        "xx": {
+            "r2_per_pc": [0.99991, 0.99962, 0.99874, 0.99315],
+            "min_r2": 0.99315,
+            "field_rmse": 0.000412,
+            "field_rmse_relative": 0.0121,
+            "pca_floor_rmse": 0.000355,
+            "field_max_abs_error": 0.0042,
+            "field_rms": 0.034,
+            "weight_z_rms": [0.91, 1.12, 1.3, 0.77],
+        },
+        "yy": {
+            "r2_per_pc": [0.99988, 0.9993, 0.9951],
+            "min_r2": 0.9951,
+            "field_rmse": 0.000388,
+            "field_rmse_relative": 0.0117,
+            "pca_floor_rmse": 0.00031,
+            "field_max_abs_error": 0.0039,
+            "field_rms": 0.0331,
+            "weight_z_rms": [1.05, 0.98, 1.41],
+        },
     },
 }
 
@@ -268,12 +376,14 @@ def synthetic_emulator_dir(tmp_path_factory):
     g = np.linspace(-18, 18, 10)
     xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     path = tmp_path_factory.mktemp("synthetic") / "data.h5"
-    create_dataset(path, config, params, DESIGNS, FRAMES, xy, np.ones(len(xy)), np.r_[np.zeros(6), np.ones(2)],
-                   "synthetic", bounds)
+    create_dataset(
+        path, config, params, DESIGNS, FRAMES, xy, np.ones(len(xy)), np.r_[np.zeros(6), np.ones(2)], "synthetic", bounds
+    )
     for i, p in enumerate(params):
         for j, alpha in enumerate(DESIGNS):
-            write_simulation(path, i, j, np.stack([synthetic_strain(p, bounds, alpha, t, xy) for t in FRAMES]),
-                             STATUS_OK)
+            write_simulation(
+                path, i, j, np.stack([synthetic_strain(p, bounds, alpha, t, xy) for t in FRAMES]), STATUS_OK
+            )
     emulator = fit_emulator(StrainDataset.open(path), gp_fraction=0.5, restarts=0, seed=0, n_jobs=1)
     return emulator.save(tmp_path_factory.mktemp("emulator") / "emu")
 
@@ -295,7 +405,8 @@ def test_validate_writes_the_report_and_the_cli_prints_it(synthetic_emulator_dir
         r2 = ", ".join(f"{v:.4f}" for v in r.r2_per_pc)
         assert f"E_{c}: R² per PC [{r2}]; field RMSE {r.field_rmse:.2e} " in out
     assert Emulator.load(synthetic_emulator_dir).provenance.validation == {
-        c: r.held_out_scores() for c, r in report.components.items()}
+        c: r.held_out_scores() for c, r in report.components.items()
+    }
 
 
 def test_chains_silence_only_the_densitys_floating_point_warnings():
@@ -308,7 +419,9 @@ def test_chains_silence_only_the_densitys_floating_point_warnings():
             exec("np.exp(np.array([800.0]))", {"__name__": "inference.model", "np": np})
             exec("import warnings; warnings.warn('other', UserWarning)", {"__name__": "inference.density"})
     assert [(w.category, str(w.message)) for w in caught] == [
-        (RuntimeWarning, "overflow encountered in exp"), (UserWarning, "other")]
+        (RuntimeWarning, "overflow encountered in exp"),
+        (UserWarning, "other"),
+    ]
 
 
 PARALLEL_CHAINS = """
@@ -335,8 +448,7 @@ if __name__ == "__main__":
 def test_parallel_chains_equal_serial_ones_and_leave_no_warning_at_exit():
     """Chains in spawned processes (ProcessPoolExecutor) give the serial chains' draws; the progress
     bar is complete and nothing but it is written to stderr (no leaked-semaphore warning at exit)."""
-    res = subprocess.run([sys.executable, "-c", PARALLEL_CHAINS], capture_output=True, text=True, cwd=ROOT,
-                         timeout=600)
+    res = subprocess.run([sys.executable, "-c", PARALLEL_CHAINS], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert res.returncode == 0, res.stderr
     assert res.stdout.split() == ["True", "(3,", "50,", "5)"]
     lines = [line.strip() for line in res.stderr.replace("\r", "\n").splitlines() if line.strip()]

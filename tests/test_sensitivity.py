@@ -9,8 +9,7 @@ from mpi4py import MPI
 from skinfem.params import Design, SkinParams
 
 NAMES = ["mu", "k1", "theta", "muscle_stiffness.log_factor", "skin_thickness.log_factor"]
-STEPS = {"mu": 1e-7, "k1": 1e-6, "theta": 1e-3, "muscle_stiffness.log_factor": 1e-4,
-         "skin_thickness.log_factor": 1e-4}
+STEPS = {"mu": 1e-7, "k1": 1e-6, "theta": 1e-3, "muscle_stiffness.log_factor": 1e-4, "skin_thickness.log_factor": 1e-4}
 
 
 @pytest.mark.slow

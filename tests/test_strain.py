@@ -24,6 +24,4 @@ def test_log_strain_of_rotation_is_zero_and_stretch_is_log():
     U = np.diag([1.05, 0.95, 1.0])
     np.testing.assert_allclose(np.diag(log_strain((R @ U)[None])[0] @ np.eye(3))[2], 0, atol=1e-14)
     # spatial (left) stretch: ln V = R ln U R^T
-    np.testing.assert_allclose(
-        log_strain((R @ U)[None])[0], R @ np.diag(np.log([1.05, 0.95, 1.0])) @ R.T, atol=1e-14
-    )
+    np.testing.assert_allclose(log_strain((R @ U)[None])[0], R @ np.diag(np.log([1.05, 0.95, 1.0])) @ R.T, atol=1e-14)

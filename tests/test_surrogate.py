@@ -59,8 +59,20 @@ def test_pca_projection_round_trip(emulator, small_dataset):
 
 def test_cli_fit_and_validate(small_dataset, tmp_path):
     out = tmp_path / "emu"
-    res = skinid("surrogate", "fit", "--data", small_dataset, "--out", out, "--n-components", "2",
-                 "--gp-fraction", "0.2", "--restarts", "0")
+    res = skinid(
+        "surrogate",
+        "fit",
+        "--data",
+        small_dataset,
+        "--out",
+        out,
+        "--n-components",
+        "2",
+        "--gp-fraction",
+        "0.2",
+        "--restarts",
+        "0",
+    )
     assert res.returncode == 0, res.stderr
     assert "R² per PC" in res.stdout
     fitted = Emulator.load(out)

@@ -137,9 +137,20 @@ def test_torch_bank_gradients_match_central_differences(fitted_gps, output):
 
 # -- emulator directory (synthetic emulator: no dataset, no FE) -----------------------------------
 PROVENANCE_KEYS = [
-    "dataset", "dataset_config", "mesh_sha256", "block_half_length", "train_materials", "test_materials",
-    "n_training_rows", "n_gp_rows", "gp_fraction", "restarts", "seed", "explained_variance_ratio",
-    "fit_seconds", "versions",
+    "dataset",
+    "dataset_config",
+    "mesh_sha256",
+    "block_half_length",
+    "train_materials",
+    "test_materials",
+    "n_training_rows",
+    "n_gp_rows",
+    "gp_fraction",
+    "restarts",
+    "seed",
+    "explained_variance_ratio",
+    "fit_seconds",
+    "versions",
 ]
 FORMAT_KEYS = ["format", "format_version", "inputs", "lower", "upper", "components", "n_weights"]
 
@@ -165,8 +176,15 @@ def tiny_emulator(fitted_gps):
         versions={"skinid": "0.0.0", "numpy": np.__version__},
     )
     xy = np.random.default_rng(6).uniform(-20, 20, size=(40, 2))
-    return Emulator(pcas={"xx": pca}, gps=GPBank.from_sklearn(fitted_gps), lower=np.zeros(7), upper=np.ones(7),
-                    xy=xy, volume=np.full(40, 0.5), provenance=provenance)
+    return Emulator(
+        pcas={"xx": pca},
+        gps=GPBank.from_sklearn(fitted_gps),
+        lower=np.zeros(7),
+        upper=np.ones(7),
+        xy=xy,
+        volume=np.full(40, 0.5),
+        provenance=provenance,
+    )
 
 
 @pytest.mark.parametrize("validated", [False, True], ids=["fitted", "validated"])
@@ -180,8 +198,10 @@ def test_provenance_round_trips_through_save_and_load(tiny_emulator, tmp_path, v
     loaded = Emulator.load(directory)
     assert loaded.provenance == tiny_emulator.provenance
     assert (loaded.save(tmp_path / "again") / "meta.json").read_text() == text
-    np.testing.assert_array_equal(loaded.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0),
-                                  tiny_emulator.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0))
+    np.testing.assert_array_equal(
+        loaded.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0),
+        tiny_emulator.predict_fields(np.full((3, 5), 0.5), [0.1, 0.2], 1.0),
+    )
 
 
 @pytest.mark.parametrize("fitted_by", ["standardised", "normalize_y"])
@@ -192,8 +212,9 @@ def test_reference_regressors_round_trip_in_target_units(tiny_emulator, fitted_g
     if fitted_by == "standardised":
         tiny_emulator.sklearn_gps = fitted_gps
     else:
-        tiny_emulator.sklearn_gps = [_sklearn_normalize_y(x, y[:, g], kernel=f.gp.kernel_, optimizer=None)
-                                     for g, f in enumerate(fitted_gps)]
+        tiny_emulator.sklearn_gps = [
+            _sklearn_normalize_y(x, y[:, g], kernel=f.gp.kernel_, optimizer=None) for g, f in enumerate(fitted_gps)
+        ]
     loaded = Emulator.load(tiny_emulator.save(tmp_path / "emu"))
     assert all(isinstance(gp, StandardisedGP) == (fitted_by == "standardised") for gp in loaded.sklearn_gps)
     x_new = np.random.default_rng(8).uniform(size=(10, 7))

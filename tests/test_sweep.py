@@ -155,8 +155,9 @@ def test_shards_merged_equal_a_single_run(reference, tiny_toml, mesh_dir, tmp_pa
     shards = []
     for i in range(3):
         shards.append(tmp_path / f"shard{i}.h5")
-        res = skinid("sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", shards[-1], "--shard", f"{i}/3",
-                     "--quiet")
+        res = skinid(
+            "sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", shards[-1], "--shard", f"{i}/3", "--quiet"
+        )
         assert res.returncode == 0, res.stderr
     assert [np.count_nonzero(StrainDataset.open(s).status) for s in shards] == [3, 3, 2]
     res = skinid("merge", *shards, "--out", tmp_path / "merged.h5")
@@ -200,8 +201,17 @@ def test_failed_simulation_is_recorded_and_the_sweep_goes_on(mesh_dir, tmp_path)
 def test_mpi_groups_equal_serial(reference, tiny_toml, mesh_dir, tmp_path, ranks_per_sim):
     out = tmp_path / "mpi.h5"
     res = skinid(
-        "sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", out,
-        "--ranks-per-sim", ranks_per_sim, "--quiet", ranks=2,
+        "sweep",
+        "--config",
+        tiny_toml,
+        "--mesh-dir",
+        mesh_dir,
+        "--out",
+        out,
+        "--ranks-per-sim",
+        ranks_per_sim,
+        "--quiet",
+        ranks=2,
     )
     assert res.returncode == 0, res.stderr
     a, b = StrainDataset.open(out).strain(), StrainDataset.open(reference).strain()

@@ -31,7 +31,20 @@ from inference.criticism.diagnosis import (
 from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
 
 __all__ = [
-    "CandidateScore", "Calibration", "CalibrationError", "Data", "Diagnosis", "NoiseModel", "NoiseStatement",
-    "RegionResidual", "ResidualMetrics", "calibrate", "check_noise_statement", "diagnose", "extend", "rank_regions",
-    "residual_metrics", "verdict",
+    "CandidateScore",
+    "Calibration",
+    "CalibrationError",
+    "Data",
+    "Diagnosis",
+    "NoiseModel",
+    "NoiseStatement",
+    "RegionResidual",
+    "ResidualMetrics",
+    "calibrate",
+    "check_noise_statement",
+    "diagnose",
+    "extend",
+    "rank_regions",
+    "residual_metrics",
+    "verdict",
 ]

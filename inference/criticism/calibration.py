@@ -57,8 +57,11 @@ class Calibration:
 
     def estimates(self) -> dict[str, dict[str, float]]:
         sd = dict(zip(self.free_names, self.sd))
-        return {n: {"value": float(self.x[i]), "sd": float(sd.get(n, 0.0))} for i, n in enumerate(self.names)
-                if i in self.free}
+        return {
+            n: {"value": float(self.x[i]), "sd": float(sd.get(n, 0.0))}
+            for i, n in enumerate(self.names)
+            if i in self.free
+        }
 
 
 class CalibrationError(RuntimeError):
@@ -120,8 +123,15 @@ class _UnitBoxProblem:
         return np.stack([np.zeros_like(r0) if c is None else (c - r0) / h[i] for i, c in enumerate(columns)], 1)
 
 
-def calibrate(forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int], label: str = "baseline",
-              max_iterations: int = 12, step: float = 1e-3) -> Calibration:
+def calibrate(
+    forward: ForwardModel,
+    data: Data,
+    x0: np.ndarray,
+    free: list[int],
+    label: str = "baseline",
+    max_iterations: int = 12,
+    step: float = 1e-3,
+) -> Calibration:
     """Least-squares fit of the free parameters (within their prior box) to the whitened data.
 
     Levenberg–Marquardt in the unit box of the prior (steps projected onto the box). A trial
@@ -167,7 +177,16 @@ def calibrate(forward: ForwardModel, data: Data, x0: np.ndarray, free: list[int]
     cov = np.linalg.pinv(J.T @ J, rcond=1e-12) * np.outer(problem.span, problem.span)
     fields = problem.fields[z.tobytes()]
     return Calibration(
-        names=list(forward.names), x=x, free=list(free), cov=cov, model_fields=fields,
-        whitened=data.whitened_residual(fields), jac=-J / problem.span, fe_runs=forward.runs - runs0,
-        seconds=time.perf_counter() - start, label=label, rejected=problem.rejected, chi2_path=chi2_path,
+        names=list(forward.names),
+        x=x,
+        free=list(free),
+        cov=cov,
+        model_fields=fields,
+        whitened=data.whitened_residual(fields),
+        jac=-J / problem.span,
+        fe_runs=forward.runs - runs0,
+        seconds=time.perf_counter() - start,
+        label=label,
+        rejected=problem.rejected,
+        chi2_path=chi2_path,
     )

@@ -143,14 +143,16 @@ def emulator_start(emulator: Emulator, measurements: list[Measurement], seed: in
     from inference.sampling import find_mode
 
     observations = [map_to_cells(m, emulator.xy) for m in measurements]
-    posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), noise="known",
-                              gp_variance="exact")
+    posterior = SkinPosterior(
+        emulator, ObservedWeights.project(emulator, observations), noise="known", gp_variance="exact"
+    )
     with torch.no_grad():
         return posterior.constrain(torch.as_tensor(find_mode(posterior, seed=seed)))[:5].numpy()
 
 
-def starting_point(forward: FEForward, data: Data, settings: CheckSettings, emulator: Emulator | None,
-                   measurements: list[Measurement]) -> tuple[np.ndarray, str]:
+def starting_point(
+    forward: FEForward, data: Data, settings: CheckSettings, emulator: Emulator | None, measurements: list[Measurement]
+) -> tuple[np.ndarray, str]:
     """(p,) calibration start (effects at their null values) and where it comes from: the given
     skin parameters, else the emulator's posterior mode, else the best of a few spread points."""
     start = forward.null.copy()
@@ -169,18 +171,28 @@ def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -
     from scipy.stats import qmc
 
     unit = np.vstack([np.full(5, 0.5), qmc.LatinHypercube(d=5, seed=seed).random(n - 1)])
-    points = [np.concatenate([forward.bounds[:5, 0] + u * np.ptp(forward.bounds[:5], axis=1), forward.null[5:]])
-              for u in unit]
-    chi2 = [np.inf if f is None else float(np.nansum(data.whitened_residual(f) ** 2))
-            for f in forward.evaluate_many(points)]
+    points = [
+        np.concatenate([forward.bounds[:5, 0] + u * np.ptp(forward.bounds[:5], axis=1), forward.null[5:]]) for u in unit
+    ]
+    chi2 = [
+        np.inf if f is None else float(np.nansum(data.whitened_residual(f) ** 2)) for f in forward.evaluate_many(points)
+    ]
     if not np.isfinite(min(chi2)):
         raise ValueError("the FE model converged at none of the starting points")
     return points[int(np.argmin(chi2))]
 
 
-def run_check(measurements: list[Measurement], noise: NoiseModel, settings: CheckSettings, config: Config,
-              skin_bounds: np.ndarray, emulator: Emulator | None = None, mesh_dir: Path | str = "meshes",
-              comm: MPI.Comm = MPI.COMM_WORLD, cache_dir: Path | str | None = None) -> CheckResult:
+def run_check(
+    measurements: list[Measurement],
+    noise: NoiseModel,
+    settings: CheckSettings,
+    config: Config,
+    skin_bounds: np.ndarray,
+    emulator: Emulator | None = None,
+    mesh_dir: Path | str = "meshes",
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    cache_dir: Path | str | None = None,
+) -> CheckResult:
     """Calibrate the baseline on ``config``'s mesh, estimate its discretisation error, diagnose
     the residual, add ``settings.add`` effects (see :mod:`inference.criticism`).
 
@@ -190,8 +202,9 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     """
     timings = CheckTimings()
     t0 = time.perf_counter()
-    forward = FEForward(config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir,
-                        settings.gauge)
+    forward = FEForward(
+        config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir, settings.gauge
+    )
     data = Data.from_points(measurements, noise)
     start, start_from = starting_point(forward, data, settings, emulator, measurements)
     timings.setup_s = time.perf_counter() - t0
@@ -199,14 +212,33 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     band = settings.band or 2 * config.mesh.h_membrane
 
     t0, runs0 = time.perf_counter(), forward.runs
-    refined = lambda: FEForward(refined_config(forward.config, settings.refinement), measurements,  # noqa: E731
-                                skin_bounds, mesh_dir, None, comm, cache_dir, settings.gauge)
+
+    def refined() -> FEForward:
+        return FEForward(
+            refined_config(forward.config, settings.refinement),
+            measurements,
+            skin_bounds,
+            mesh_dir,
+            None,
+            comm,
+            cache_dir,
+            settings.gauge,
+        )
+
     model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
     baseline, data, noise_statement = check_noise_statement(model, baseline, data, settings.max_iterations // 2)
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
-    diagnosis = diagnose(model, baseline, data, settings.candidates, half, band, settings.confirm,
-                         mesh_resolved=disc is None or disc.resolved,
-                         max_iterations=settings.max_iterations)  # also the baseline's metrics
+    diagnosis = diagnose(
+        model,
+        baseline,
+        data,
+        settings.candidates,
+        half,
+        band,
+        settings.confirm,
+        mesh_resolved=disc is None or disc.resolved,
+        max_iterations=settings.max_iterations,
+    )  # also the baseline's metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
 
     t0, runs0 = time.perf_counter(), forward.runs
@@ -214,29 +246,62 @@ def run_check(measurements: list[Measurement], noise: NoiseModel, settings: Chec
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     next_round = None
     if settings.add:  # what is still missing with the added effects
-        next_round = diagnose(model, versions[-1].calibration, data,
-                              [c for c in settings.candidates if c not in settings.add], half, band, settings.confirm,
-                              mesh_resolved=disc is None or disc.resolved, added=settings.add,
-                              max_iterations=settings.max_iterations)
+        next_round = diagnose(
+            model,
+            versions[-1].calibration,
+            data,
+            [c for c in settings.candidates if c not in settings.add],
+            half,
+            band,
+            settings.confirm,
+            mesh_resolved=disc is None or disc.resolved,
+            added=settings.add,
+            max_iterations=settings.max_iterations,
+        )
         timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
-    diagnosis.text = " ".join(part for part in (
-        disc.summary() if disc else "", noise_statement.summary(noise.sd), diagnosis.text,
-        f"With {' and '.join(settings.add)} added, the diagnosis repeated: {next_round.text}" if next_round else "",
-    ) if part)
+    diagnosis.text = " ".join(
+        part
+        for part in (
+            disc.summary() if disc else "",
+            noise_statement.summary(noise.sd),
+            diagnosis.text,
+            f"With {' and '.join(settings.add)} added, the diagnosis repeated: {next_round.text}" if next_round else "",
+        )
+        if part
+    )
     return CheckResult(
-        data=data, observations=measurements, names=forward.names, bounds=forward.bounds, half=half, band=band,
-        versions=versions, diagnosis=diagnosis, next_round=next_round, discretisation=disc,
-        noise_statement=noise_statement, failures=forward.failures, start=start, start_from=start_from,
-        gauge_text=(f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
-                    f"(one per {settings.spacing:g} mm square)"),
-        fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size, timings=timings,
+        data=data,
+        observations=measurements,
+        names=forward.names,
+        bounds=forward.bounds,
+        half=half,
+        band=band,
+        versions=versions,
+        diagnosis=diagnosis,
+        next_round=next_round,
+        discretisation=disc,
+        noise_statement=noise_statement,
+        failures=forward.failures,
+        start=start,
+        start_from=start_from,
+        gauge_text=(
+            f"surface strain of a {settings.gauge.window:g} mm strain window at {data.n // 3} points "
+            f"(one per {settings.spacing:g} mm square)"
+        ),
+        fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size,
+        timings=timings,
     )
 
 
-def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, start: np.ndarray,
-            settings: CheckSettings, timings: CheckTimings
-            ) -> tuple[ForwardModel, Data, Calibration, DiscretisationError | None]:
+def compare(
+    forward: FEForward,
+    refined: Callable[[], FEForward],
+    data: Data,
+    start: np.ndarray,
+    settings: CheckSettings,
+    timings: CheckTimings,
+) -> tuple[ForwardModel, Data, Calibration, DiscretisationError | None]:
     """The baseline calibration; with ``settings.discretisation`` the mesh's own error is
     estimated at it (``refined()``: the model on the refined mesh; one run per design), the
     model corrected by a fitted multiple of it (:class:`CorrectedForward`), the data given the
@@ -258,8 +323,16 @@ def compare(forward: FEForward, refined: Callable[[], FEForward], data: Data, st
     return model, data, baseline, disc
 
 
-def add_versions(model: ForwardModel, data: Data, baseline: Calibration, diagnosis: Diagnosis,
-                 settings: CheckSettings, half: float, band: float, timings: CheckTimings) -> list[Version]:
+def add_versions(
+    model: ForwardModel,
+    data: Data,
+    baseline: Calibration,
+    diagnosis: Diagnosis,
+    settings: CheckSettings,
+    half: float,
+    band: float,
+    timings: CheckTimings,
+) -> list[Version]:
     """The baseline, then ``settings.add`` effects one after the other, each version including
     the previous ones (a fit made while diagnosing is reused as the first added version)."""
     versions = [Version(baseline, diagnosis.metrics, diagnosis.regions)]

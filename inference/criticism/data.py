@@ -31,8 +31,9 @@ class NoiseModel:
             raise ValueError(f"noise sd must be three positive numbers (xx, yy, xy), got {self.sd}")
         correlation_matrix(np.zeros((1, 2)), self.length, self.nugget)  # validates both
 
-    def whiteners(self, xy: np.ndarray, model_sd: np.ndarray | None = None,
-                  model_correlation: tuple[float, float] = (0.0, 1.0)) -> list[np.ndarray]:
+    def whiteners(
+        self, xy: np.ndarray, model_sd: np.ndarray | None = None, model_correlation: tuple[float, float] = (0.0, 1.0)
+    ) -> list[np.ndarray]:
         """Symmetric Sigma_c^(-1/2) (m, m) per component c for points xy (m, 2), cached.
 
         Sigma_c = sd_c^2 R + D_c R_m D_c: the correlated noise plus a model-form error of
@@ -47,12 +48,15 @@ class NoiseModel:
                 self._roots[key] = [root / s for s in self.sd]
             else:
                 model_corr = correlation_matrix(xy, *model_correlation)
-                self._roots[key] = [inverse_sqrt(s**2 * corr + model_sd[:, c, None] * model_corr * model_sd[None, :, c])
-                                    for c, s in enumerate(self.sd)]
+                self._roots[key] = [
+                    inverse_sqrt(s**2 * corr + model_sd[:, c, None] * model_corr * model_sd[None, :, c])
+                    for c, s in enumerate(self.sd)
+                ]
         return self._roots[key]
 
-    def whiten(self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray,
-               model_error: ModelError | None = None) -> np.ndarray:
+    def whiten(
+        self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray, model_error: ModelError | None = None
+    ) -> np.ndarray:
         """(n_obs, n_pts, 3) residual -> whitened residual (NaN off the mask).
 
         ``xy`` (n_obs, n_pts, 2) points, ``masks`` (n_obs, n_pts), ``model_error`` or None: see
@@ -89,8 +93,9 @@ class ModelError:
         """A unit-sd field with this correlation (its square roots cached per point set)."""
         return NoiseModel(np.ones(3), self.length, self.nugget)
 
-    def sample(self, xy: np.ndarray, o: int, mask: np.ndarray, shape: tuple[int, ...],
-               rng: np.random.Generator) -> np.ndarray:
+    def sample(
+        self, xy: np.ndarray, o: int, mask: np.ndarray, shape: tuple[int, ...], rng: np.random.Generator
+    ) -> np.ndarray:
         """Draws (*shape, m, 3) of observation ``o``'s error at its measured points xy (m, 2)."""
         return self._unit_field.sample(xy, shape, rng) * self.sd[o, mask]
 

@@ -41,14 +41,17 @@ class NoiseStatement:
         if self.consistent:
             return ""
         estimated = ", ".join(f"{v:.2g}" for v in self.factor * stated)
-        return (f"The stated noise is inconsistent with the residual: it is {self.factor:.1f}x larger than stated "
-                f"(chi^2/dof = {self.chi2_per_dof:.2f}) but has the stated noise's spatial structure (Moran's I "
-                f"z = {self.moran_z:.1f}); the check continues with the estimated sd {estimated} (xx, yy, xy) "
-                "instead of looking for a missing effect in it (give --noise-sd to state it).")
+        return (
+            f"The stated noise is inconsistent with the residual: it is {self.factor:.1f}x larger than stated "
+            f"(chi^2/dof = {self.chi2_per_dof:.2f}) but has the stated noise's spatial structure (Moran's I "
+            f"z = {self.moran_z:.1f}); the check continues with the estimated sd {estimated} (xx, yy, xy) "
+            "instead of looking for a missing effect in it (give --noise-sd to state it)."
+        )
 
 
-def check_noise_statement(forward: ForwardModel, cal: Calibration, data: Data,
-                          max_iterations: int = 6) -> tuple[Calibration, Data, NoiseStatement]:
+def check_noise_statement(
+    forward: ForwardModel, cal: Calibration, data: Data, max_iterations: int = 6
+) -> tuple[Calibration, Data, NoiseStatement]:
     """Is a structured residual only noise larger than stated?
 
     Moran's I does not depend on the residual's scale: a residual that is larger than the
@@ -96,12 +99,15 @@ class CandidateScore:
     def summary(self) -> str:
         est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in self.estimate.items())
         how = "fitted" if self.fitted else "linearised"
-        return (f"{self.effect} (Delta BIC = {self.delta_bic:+.1f}, explains {self.share_explained:.0%} of the "
-                f"excess residual, {self.confounding:.0%} confounded with the skin parameters; {how} estimate {est})")
+        return (
+            f"{self.effect} (Delta BIC = {self.delta_bic:+.1f}, explains {self.share_explained:.0%} of the "
+            f"excess residual, {self.confounding:.0%} confounded with the skin parameters; {how} estimate {est})"
+        )
 
 
-def signatures(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str],
-               rel_step: float = 0.02) -> dict[str, np.ndarray]:
+def signatures(
+    forward: ForwardModel, cal: Calibration, data: Data, effects: list[str], rel_step: float = 0.02
+) -> dict[str, np.ndarray]:
     """Whitened signatures (n, dim phi) of each effect: derivatives of the model at ``cal.x``.
 
     Exact (forward sensitivities, one run) when the forward model has derivatives. Otherwise
@@ -158,13 +164,20 @@ def score_candidates(cal: Calibration, data: Data, sigs: dict[str, np.ndarray]) 
         raw = S @ beta
         dof = S.shape[1]
         cls = get_effect(name)
-        out.append(CandidateScore(
-            effect=name, description=cls.description, parameters=cls.qualified_names(), statistic=T, dof=dof,
-            p_value=float(stats.chi2.sf(T, dof)), delta_bic=T - dof * math.log(n),
-            share_explained=float(np.clip((T - dof) / excess, 0, 1)) if excess > 0 else 0.0,
-            confounding=float(np.clip(1 - T / float(raw @ raw), 0, 1)) if raw @ raw > 0 else 1.0,
-            estimate={qn: float(b) for qn, b in zip(cls.qualified_names(), beta)},
-        ))
+        out.append(
+            CandidateScore(
+                effect=name,
+                description=cls.description,
+                parameters=cls.qualified_names(),
+                statistic=T,
+                dof=dof,
+                p_value=float(stats.chi2.sf(T, dof)),
+                delta_bic=T - dof * math.log(n),
+                share_explained=float(np.clip((T - dof) / excess, 0, 1)) if excess > 0 else 0.0,
+                confounding=float(np.clip(1 - T / float(raw @ raw), 0, 1)) if raw @ raw > 0 else 1.0,
+                estimate={qn: float(b) for qn, b in zip(cls.qualified_names(), beta)},
+            )
+        )
     return sorted(out, key=lambda s: -s.delta_bic)
 
 
@@ -192,8 +205,18 @@ class Diagnosis:
         return next((s for s in self.scores if s.explains), None)
 
 
-def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[str], half: float, band: float,
-             confirm: int = 2, mesh_resolved: bool = True, added: Sequence[str] = (), **fit_kwargs) -> Diagnosis:
+def diagnose(
+    forward: ForwardModel,
+    cal: Calibration,
+    data: Data,
+    effects: list[str],
+    half: float,
+    band: float,
+    confirm: int = 2,
+    mesh_resolved: bool = True,
+    added: Sequence[str] = (),
+    **fit_kwargs,
+) -> Diagnosis:
     """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
@@ -219,37 +242,50 @@ def diagnose(forward: ForwardModel, cal: Calibration, data: Data, effects: list[
     for s in scores:
         s.explains = metrics.structured and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
     text = verdict(metrics, scores, regions, hotspot, mesh_resolved, added)
-    return Diagnosis(metrics, regions, hotspot, scores, fits, text, forward.runs - runs0,
-                     time.perf_counter() - start)
+    return Diagnosis(metrics, regions, hotspot, scores, fits, text, forward.runs - runs0, time.perf_counter() - start)
 
 
-def verdict(metrics: ResidualMetrics, scores: list[CandidateScore], regions: list[RegionResidual], hotspot: Hotspot,
-            mesh_resolved: bool = True, added: Sequence[str] = ()) -> str:
+def verdict(
+    metrics: ResidualMetrics,
+    scores: list[CandidateScore],
+    regions: list[RegionResidual],
+    hotspot: Hotspot,
+    mesh_resolved: bool = True,
+    added: Sequence[str] = (),
+) -> str:
     """One paragraph: is the residual noise, where is it not, which candidate explains it.
 
     ``mesh_resolved`` False (the model's discretisation error exceeds the noise) turns "something
     outside the registry is missing" into "rerun on a finer mesh first"."""
     if not metrics.structured:
-        return (f"The residual is consistent with the stated noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
-                f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f}): "
-                "no missing effect is needed.")
+        return (
+            f"The residual is consistent with the stated noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
+            f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f}): "
+            "no missing effect is needed."
+        )
     worst = regions[0]
-    text = (f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
-            f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); it is largest at the "
-            f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1), "
-            f"{hotspot.summary()}.")
+    text = (
+        f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
+        f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); it is largest at the "
+        f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1), "
+        f"{hotspot.summary()}."
+    )
     best = next((s for s in scores if s.explains), None)
     if best is None:
         lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
         if not mesh_resolved:
-            return (text + " No candidate explains the residual." + lead + " The check's own discretisation error "
-                    "exceeds the noise, so this structure may be the mesh's: rerun on a finer mesh before concluding "
-                    "that something outside the registry is missing.")
+            return (
+                text + " No candidate explains the residual." + lead + " The check's own discretisation error "
+                "exceeds the noise, so this structure may be the mesh's: rerun on a finer mesh before concluding "
+                "that something outside the registry is missing."
+            )
         return text + " No candidate explains the residual." + lead + " Something outside the registry is missing."
     text += f" Most likely missing: {best.summary()}."
     effect = get_effect(best.effect)
     text += " Estimated " + effect.describe({q.split(".", 1)[1]: v for q, v in best.estimate.items()})
     if best.confounding > 0.8:
-        text += (" It is strongly confounded with the skin parameters: more load frames or membrane designs "
-                 "would separate them.")
+        text += (
+            " It is strongly confounded with the skin parameters: more load frames or membrane designs "
+            "would separate them."
+        )
     return text + f" Add it with --add {' '.join([*added, best.effect])}."

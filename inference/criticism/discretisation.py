@@ -69,15 +69,18 @@ def refined_config(config: Config, refinement: str = "uniform") -> Config:
         return config.with_changes(mesh={"h_edge": edge_cell_size(m) / 2, **layers})
     if refinement != "uniform":
         raise ValueError(f"unknown refinement {refinement!r}; choose one of {', '.join(REFINEMENTS)}")
-    return config.with_changes(mesh={"h_membrane": m.h_membrane / 2, "h_far": m.h_far / 2, "h_edge": m.h_edge / 2,
-                                     **layers})
+    return config.with_changes(
+        mesh={"h_membrane": m.h_membrane / 2, "h_far": m.h_far / 2, "h_edge": m.h_edge / 2, **layers}
+    )
 
 
 def describe_mesh(config: Config) -> str:
     m, degree = config.mesh, config.solver.element_degree
     edge = f", {m.h_edge:g} mm at its edge" if m.edge_refined else ""
-    return (f"Q{degree}, h = {m.h_membrane:g} mm under the membrane{edge} ({m.h_far:g} mm far), "
-            f"{m.skin_layers} skin layer{'s' if m.skin_layers > 1 else ''}")
+    return (
+        f"Q{degree}, h = {m.h_membrane:g} mm under the membrane{edge} ({m.h_far:g} mm far), "
+        f"{m.skin_layers} skin layer{'s' if m.skin_layers > 1 else ''}"
+    )
 
 
 @dataclass
@@ -142,20 +145,26 @@ class DiscretisationError:
         return self.h_edge * 0.5 / max(self.sigma, 1e-12)
 
     def summary(self) -> str:
-        text = (f"Discretisation error of the check's mesh ({self.mesh}) at the calibrated parameters: "
-                f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS "
-                f"(two-mesh estimate with {self.refined}); "
-                f"the model is corrected by a fitted multiple of the refined mesh's shift and its remaining error "
-                f"({self.sigma / 2:.1f} sigma) is carried next to the noise.")
+        text = (
+            f"Discretisation error of the check's mesh ({self.mesh}) at the calibrated parameters: "
+            f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS "
+            f"(two-mesh estimate with {self.refined}); "
+            f"the model is corrected by a fitted multiple of the refined mesh's shift and its remaining error "
+            f"({self.sigma / 2:.1f} sigma) is carried next to the noise."
+        )
         if self.amplitude is not None:
-            text += (f" The measurement puts the correction at {self.amplitude:.2f} ± {self.amplitude_sd:.2f} times "
-                     "the shift (1: the refined mesh's field; 2: first-order extrapolation"
-                     f"{'; above 2: the refined mesh is itself far from converged' if self.amplitude > 2.5 else ''}).")
+            text += (
+                f" The measurement puts the correction at {self.amplitude:.2f} ± {self.amplitude_sd:.2f} times "
+                "the shift (1: the refined mesh's field; 2: first-order extrapolation"
+                f"{'; above 2: the refined mesh is itself far from converged' if self.amplitude > 2.5 else ''})."
+            )
         if not self.resolved:
-            text += (f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
-                     f"The error lives at the membrane edge: under first-order convergence a mesh with cells of "
-                     f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it; quadratic elements "
-                     "(solver.element_degree = 2) with two skin layers converge faster (docs/criticism.md).")
+            text += (
+                f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
+                f"The error lives at the membrane edge: under first-order convergence a mesh with cells of "
+                f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it; quadratic elements "
+                "(solver.element_degree = 2) with two skin layers converge faster (docs/criticism.md)."
+            )
         return text
 
 
@@ -178,7 +187,7 @@ def correlation_fit(field: np.ndarray, xy: np.ndarray, masks: np.ndarray, h: flo
     centres = (0.5 * (edges[1:] + edges[:-1]))[used]
     best = (np.sum(rho**2), 0.0, 1.0)  # independent points
     for length in np.linspace(h / 20, 4 * h, 80):
-        shape = np.exp(-centres**2 / (2 * length**2))
+        shape = np.exp(-(centres**2) / (2 * length**2))
         scale = float(np.clip(shape @ rho / (shape @ shape), 0.0, 1.0))  # = 1 - nugget
         best = min(best, (float(np.sum((rho - scale * shape) ** 2)), float(length), 1.0 - scale))
     return best[1], best[2]
@@ -199,10 +208,14 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data) -> D
     measured_rms = float(np.sqrt(np.mean(data.fields[m] ** 2)))
     error = 2 * shift[m]
     return DiscretisationError(
-        mesh=describe_mesh(coarse.config), refined=describe_mesh(fine.config),
-        h_membrane=coarse.config.mesh.h_membrane, h_edge=edge_cell_size(coarse.config.mesh), shift=shift,
+        mesh=describe_mesh(coarse.config),
+        refined=describe_mesh(fine.config),
+        h_membrane=coarse.config.mesh.h_membrane,
+        h_edge=edge_cell_size(coarse.config.mesh),
+        shift=shift,
         relative=float(np.sqrt(np.mean(error**2)) / measured_rms),
-        sigma=float(np.sqrt(np.mean((error / data.noise.sd) ** 2))), seconds=time.perf_counter() - start,
+        sigma=float(np.sqrt(np.mean((error / data.noise.sd) ** 2))),
+        seconds=time.perf_counter() - start,
     )
 
 
@@ -237,8 +250,9 @@ class CorrectedForward(ForwardModel):
         fields = self.base.evaluate_many([x[:-1] for x in points])
         return [None if f is None else f + x[-1] * self.shift for x, f in zip(points, fields)]
 
-    def evaluate_with_jacobian(self, points: Sequence[np.ndarray],
-                               names: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    def evaluate_with_jacobian(
+        self, points: Sequence[np.ndarray], names: Sequence[str]
+    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
         base_names = [n for n in names if n != AMPLITUDE]
         results = self.base.evaluate_with_jacobian([x[:-1] for x in points], base_names)
         out = []

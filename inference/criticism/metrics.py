@@ -70,8 +70,10 @@ class Hotspot:
     rms_sigma: float
 
     def summary(self) -> str:
-        return (f"peaking within {self.radius:.1f} mm of (x, y) = ({self.x:.1f}, {self.y:.1f}) mm "
-                f"({self.rms_sigma:.1f} sigma RMS over its {self.points} nearest points)")
+        return (
+            f"peaking within {self.radius:.1f} mm of (x, y) = ({self.x:.1f}, {self.y:.1f}) mm "
+            f"({self.rms_sigma:.1f} sigma RMS over its {self.points} nearest points)"
+        )
 
 
 def residual_hotspot(cal: Calibration, data: Data, k: int = HOTSPOT_POINTS) -> Hotspot:
@@ -159,9 +161,18 @@ def residual_metrics(cal: Calibration, data: Data, n_draws: int = 4000, seed: in
     return ResidualMetrics(
         rmse=float(np.sqrt(np.mean(r**2))),
         rmse_by_component={c: float(np.sqrt(np.mean(r[:, i] ** 2))) for i, c in enumerate(("xx", "yy", "xy"))},
-        noise_rms=float(np.sqrt(np.mean(data.noise.sd**2))), chi2=chi2, dof=n - k, chi2_per_dof=chi2 / (n - k),
-        ppc_p=ppc_p, moran_I=moran.I, moran_z=moran.z, moran_p=moran.p, bic=chi2 + k * math.log(n),
-        n_data=n, n_params=k, structured=bool(structured),
+        noise_rms=float(np.sqrt(np.mean(data.noise.sd**2))),
+        chi2=chi2,
+        dof=n - k,
+        chi2_per_dof=chi2 / (n - k),
+        ppc_p=ppc_p,
+        moran_I=moran.I,
+        moran_z=moran.z,
+        moran_p=moran.p,
+        bic=chi2 + k * math.log(n),
+        n_data=n,
+        n_params=k,
+        structured=bool(structured),
     )
 
 

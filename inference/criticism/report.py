@@ -29,9 +29,17 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
             rows.append([measured, model, measured - model])
             titles.append([f"measured {c}", f"model {c} ({cal.label})", f"residual {c}"])
         out = path.with_name(f"{path.stem}_obs{o}.png")
-        field_grid(result.data.xy[o, mask], rows, titles, out, result.half, float(cal.x[4]), window=2 * result.half,
-                   suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
-                            f"residual RMSE {result.versions[version].metrics.rmse:.2e}")
+        field_grid(
+            result.data.xy[o, mask],
+            rows,
+            titles,
+            out,
+            result.half,
+            float(cal.x[4]),
+            window=2 * result.half,
+            suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
+            f"residual RMSE {result.versions[version].metrics.rmse:.2e}",
+        )
         paths.append(out)
     return paths
 
@@ -58,18 +66,34 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
         ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)
     if version == 0:
         spot = result.diagnosis.hotspot
-        ax.add_patch(plt.Circle((spot.x, spot.y), spot.radius, fill=False, color="lime", lw=1.5,
-                                label=f"hotspot: {spot.rms_sigma:.1f} σ over its {spot.points} nearest points"))
+        ax.add_patch(
+            plt.Circle(
+                (spot.x, spot.y),
+                spot.radius,
+                fill=False,
+                color="lime",
+                lw=1.5,
+                label=f"hotspot: {spot.rms_sigma:.1f} σ over its {spot.points} nearest points",
+            )
+        )
         ax.legend(loc="lower right", fontsize=8)
-    ax.text(0.02, 0.98, "\n".join(f"{i + 1}. {g.region}: {g.rms_sigma:.1f} σ" for i, g in enumerate(v.regions)),
-            transform=ax.transAxes, fontsize=8, va="top", bbox=dict(facecolor="w", alpha=0.85, lw=0))
+    ax.text(
+        0.02,
+        0.98,
+        "\n".join(f"{i + 1}. {g.region}: {g.rms_sigma:.1f} σ" for i, g in enumerate(v.regions)),
+        transform=ax.transAxes,
+        fontsize=8,
+        va="top",
+        bbox=dict(facecolor="w", alpha=0.85, lw=0),
+    )
     ax.set_xlim(-2.5 * h, 2.5 * h)
     ax.set_ylim(-2.5 * h, 2.5 * h)
     ax.set_aspect("equal")
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
-    ax.set_title(f"where the {v.calibration.label} model fails (dashed: membrane, dotted: edge strip, cyan: fibers)",
-                 fontsize=9)
+    ax.set_title(
+        f"where the {v.calibration.label} model fails (dashed: membrane, dotted: edge strip, cyan: fibers)", fontsize=9
+    )
     return save_figure(fig, path)
 
 
@@ -105,8 +129,11 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     ax.barh(y, [s.delta_bic for s in scores], color=colors)
     ax.axvline(6, color="k", ls="--", lw=1, label="strong evidence (ΔBIC = 6)")
     ax.set_xscale("symlog", linthresh=10)
-    ax.set_yticks(y, [f"{s.effect}\n({s.share_explained:.0%} of excess, {'fit' if s.fitted else 'lin.'})"
-                      for s in scores], fontsize=8)
+    ax.set_yticks(
+        y,
+        [f"{s.effect}\n({s.share_explained:.0%} of excess, {'fit' if s.fitted else 'lin.'})" for s in scores],
+        fontsize=8,
+    )
     ax.set_xlabel("ΔBIC of adding the effect [-] (> 0 favours it)")
     ax.set_title("which effect is missing (green: explains the residual)", fontsize=10)
     ax.legend(fontsize=8)
@@ -117,23 +144,36 @@ def discretisation_lines(result: CheckResult) -> list[str]:
     disc = result.discretisation
     if disc is None:
         return ["Discretisation error: not estimated (--no-discretisation).", ""]
-    return ["### The check's own discretisation error", "", disc.summary(), "",
-            "| | RMS, share of the field | RMS [noise sd] |", "|---|---|---|",
-            f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
-            f"| after the fitted correction (carried in the covariance) | {disc.relative / 2:.1%} | "
-            f"{disc.sigma / 2:.2f} |", "",
-            f"The carried error is correlated between points like the two meshes' difference: "
-            f"{1 - result.data.model_error.nugget:.0%} of its variance over {result.data.model_error.length:.2g} mm, "
-            "the rest independent.", ""]
+    return [
+        "### The check's own discretisation error",
+        "",
+        disc.summary(),
+        "",
+        "| | RMS, share of the field | RMS [noise sd] |",
+        "|---|---|---|",
+        f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
+        f"| after the fitted correction (carried in the covariance) | {disc.relative / 2:.1%} | {disc.sigma / 2:.2f} |",
+        "",
+        f"The carried error is correlated between points like the two meshes' difference: "
+        f"{1 - result.data.model_error.nugget:.0%} of its variance over {result.data.model_error.length:.2g} mm, "
+        "the rest independent.",
+        "",
+    ]
 
 
 def failure_lines(result: CheckResult) -> list[str]:
     if not result.failures:
         return ["Every FE run converged.", ""]
-    lines = [f"{len(result.failures)} FE run(s) did not converge; each was a rejected step (the calibration "
-             "shortened its step) or a one-sided signature difference:", ""]
-    return lines + [f"- {', '.join(f'{n} = {v:.4g}' for n, v in zip(result.names, f.x))}: {f.message}"
-                    for f in result.failures] + [""]
+    lines = [
+        f"{len(result.failures)} FE run(s) did not converge; each was a rejected step (the calibration "
+        "shortened its step) or a one-sided signature difference:",
+        "",
+    ]
+    return (
+        lines
+        + [f"- {', '.join(f'{n} = {v:.4g}' for n, v in zip(result.names, f.x))}: {f.message}" for f in result.failures]
+        + [""]
+    )
 
 
 def _fmt(value: float) -> str:
@@ -150,10 +190,17 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
     regions_map(result, 0, out / "regions.png")
     candidates_plot(result, out / "candidates.png")
     error_falls_plot(result, out / "error_falls.png")
-    lines = (compare_lines(result) + discretisation_lines(result) + failure_lines(result)
-             + [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(baseline_maps)]
-             + region_lines(result) + candidate_lines(result) + version_lines(result, final_maps)
-             + next_round_lines(result) + cost_lines(result))
+    lines = (
+        compare_lines(result)
+        + discretisation_lines(result)
+        + failure_lines(result)
+        + [f"![baseline residual, observation {i}]({p.name})" for i, p in enumerate(baseline_maps)]
+        + region_lines(result)
+        + candidate_lines(result)
+        + version_lines(result, final_maps)
+        + next_round_lines(result)
+        + cost_lines(result)
+    )
     path = out / "report.md"
     write_text(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
     write_text(path, "\n".join(lines))  # last: a report.md means a complete report
@@ -163,53 +210,78 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
 def compare_lines(result: CheckResult) -> list[str]:
     """Title, noise, verdict and section 1's metrics table of the baseline."""
     base = result.versions[0].metrics
-    return ["# Model criticism report", "",
-            f"{len(result.observations)} observation(s), {result.data.n} data values; noise sd "
-            f"{'(estimated, see the verdict) ' if not result.noise_statement.consistent else ''}"
-            f"{', '.join(f'{s:.2g}' for s in result.data.noise.sd)} (xx, yy, xy), correlation length "
-            f"{result.data.noise.length:g} mm, uncorrelated share {result.data.noise.nugget:g}.", "",
-            "## Verdict", "", result.diagnosis.text, "",
-            "## 1. Compare: the calibrated baseline against the measurements", "",
-            f"Calibrated on the FE model (Levenberg–Marquardt from the {result.start_from}; Laplace posterior), "
-            f"measured like the DIC system: {result.gauge_text}.", "",
-            "| metric | value | noise alone |", "|---|---|---|",
-            f"| residual RMSE [log strain] | {_fmt(base.rmse)} | {_fmt(base.noise_rms)} |",
-            f"| χ²/dof (whitened, dof = {base.dof}) | {base.chi2_per_dof:.3f} | 1 ± {np.sqrt(2 / base.dof):.3f} |",
-            f"| posterior-predictive p-value | {base.ppc_p:.3f} | uniform on [0, 1] |",
-            f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} "
-            f"(z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
-            ""]
+    return [
+        "# Model criticism report",
+        "",
+        f"{len(result.observations)} observation(s), {result.data.n} data values; noise sd "
+        f"{'(estimated, see the verdict) ' if not result.noise_statement.consistent else ''}"
+        f"{', '.join(f'{s:.2g}' for s in result.data.noise.sd)} (xx, yy, xy), correlation length "
+        f"{result.data.noise.length:g} mm, uncorrelated share {result.data.noise.nugget:g}.",
+        "",
+        "## Verdict",
+        "",
+        result.diagnosis.text,
+        "",
+        "## 1. Compare: the calibrated baseline against the measurements",
+        "",
+        f"Calibrated on the FE model (Levenberg–Marquardt from the {result.start_from}; Laplace posterior), "
+        f"measured like the DIC system: {result.gauge_text}.",
+        "",
+        "| metric | value | noise alone |",
+        "|---|---|---|",
+        f"| residual RMSE [log strain] | {_fmt(base.rmse)} | {_fmt(base.noise_rms)} |",
+        f"| χ²/dof (whitened, dof = {base.dof}) | {base.chi2_per_dof:.3f} | 1 ± {np.sqrt(2 / base.dof):.3f} |",
+        f"| posterior-predictive p-value | {base.ppc_p:.3f} | uniform on [0, 1] |",
+        f"| Moran's I of the residual / sd (z vs the noise model) | {base.moran_I:.3f} "
+        f"(z = {base.moran_z:.1f}) | z ~ N(0, 1) |",
+        "",
+    ]
 
 
 def region_lines(result: CheckResult) -> list[str]:
     """Section 2: the regions ranked by their residual."""
-    lines = ["", "## 2. Where the model fails", "",
-             "RMS of (measured − model) / sd over each region's points "
-             "(noise and carried model error alone give 1):", "",
-             "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
-    lines += [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |"
-              for i, g in enumerate(result.diagnosis.regions)]
+    lines = [
+        "",
+        "## 2. Where the model fails",
+        "",
+        "RMS of (measured − model) / sd over each region's points (noise and carried model error alone give 1):",
+        "",
+        "| rank | region | points | RMS [σ] |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(result.diagnosis.regions)
+    ]
     spot = result.diagnosis.hotspot
     return lines + ["", f"The largest residual is {spot.summary()}.", "", "![regions](regions.png)"]
 
 
 def candidate_lines(result: CheckResult) -> list[str]:
     """Section 3: the candidate effects' scores."""
-    lines = ["", "## 3. Which effect is missing", "",
-             "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
-             "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
-             "the effect added.", ""]
+    lines = [
+        "",
+        "## 3. Which effect is missing",
+        "",
+        "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
+        "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
+        "the effect added.",
+        "",
+    ]
     return lines + candidate_table(result.diagnosis.scores) + ["", "![candidates](candidates.png)"]
 
 
 def candidate_table(scores: list[CandidateScore]) -> list[str]:
-    lines = ["| effect | ΔBIC | share of excess residual | confounding | score T (dof) | p | estimate | explains |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| effect | ΔBIC | share of excess residual | confounding | score T (dof) | p | estimate | explains |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for s in scores:
         est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in s.estimate.items())
-        lines.append(f"| {s.effect} | {s.delta_bic:+.1f} ({'fit' if s.fitted else 'linearised'}) | "
-                     f"{s.share_explained:.0%} | {s.confounding:.0%} | {s.statistic:.1f} ({s.dof}) | {s.p_value:.2g} | "
-                     f"{est} | {'**yes**' if s.explains else 'no'} |")
+        lines.append(
+            f"| {s.effect} | {s.delta_bic:+.1f} ({'fit' if s.fitted else 'linearised'}) | "
+            f"{s.share_explained:.0%} | {s.confounding:.0%} | {s.statistic:.1f} ({s.dof}) | {s.p_value:.2g} | "
+            f"{est} | {'**yes**' if s.explains else 'no'} |"
+        )
     return lines
 
 
@@ -218,26 +290,48 @@ def next_round_lines(result: CheckResult) -> list[str]:
     d = result.next_round
     if d is None:
         return []
-    return (["", f"## 6. Next round: what is still missing with {result.versions[-1].calibration.label}", "",
-             d.text, "", "| rank | region | points | RMS [σ] |", "|---|---|---|---|"]
-            + [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
-            + [""] + (candidate_table(d.scores) if d.scores else ["No candidate is left to test."]))
+    return (
+        [
+            "",
+            f"## 6. Next round: what is still missing with {result.versions[-1].calibration.label}",
+            "",
+            d.text,
+            "",
+            "| rank | region | points | RMS [σ] |",
+            "|---|---|---|---|",
+        ]
+        + [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
+        + [""]
+        + (candidate_table(d.scores) if d.scores else ["No candidate is left to test."])
+    )
 
 
 def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
     """Sections 4–5: each model version's metrics and estimates, the added effects, the final maps."""
     base = result.versions[0].metrics
-    lines = ["", "## 4–5. Model versions: the error falls", "",
-             "| version | parameters | RMSE | χ²/dof | PPC p | Moran z | ΔBIC vs baseline | consistent with noise |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        "## 4–5. Model versions: the error falls",
+        "",
+        "| version | parameters | RMSE | χ²/dof | PPC p | Moran z | ΔBIC vs baseline | consistent with noise |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for v in result.versions:
         m = v.metrics
-        lines.append(f"| {v.calibration.label} | {m.n_params} | {_fmt(m.rmse)} | {m.chi2_per_dof:.3f} | "
-                     f"{m.ppc_p:.3f} | {m.moran_z:.1f} | {base.bic - m.bic:+.1f} | "
-                     f"{'yes' if not m.structured else 'no'} |")
-    lines += ["", "![error falls](error_falls.png)", "", "Parameter estimates (± 1 sd, Laplace):", "",
-              "| parameter | " + " | ".join(v.calibration.label for v in result.versions) + " |",
-              "|---|" + "---|" * len(result.versions)]
+        lines.append(
+            f"| {v.calibration.label} | {m.n_params} | {_fmt(m.rmse)} | {m.chi2_per_dof:.3f} | "
+            f"{m.ppc_p:.3f} | {m.moran_z:.1f} | {base.bic - m.bic:+.1f} | "
+            f"{'yes' if not m.structured else 'no'} |"
+        )
+    lines += [
+        "",
+        "![error falls](error_falls.png)",
+        "",
+        "Parameter estimates (± 1 sd, Laplace):",
+        "",
+        "| parameter | " + " | ".join(v.calibration.label for v in result.versions) + " |",
+        "|---|" + "---|" * len(result.versions),
+    ]
     free = list(dict.fromkeys(n for v in result.versions for n in v.calibration.free_names))
     for name in free:
         cells = []
@@ -259,14 +353,19 @@ def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
 def cost_lines(result: CheckResult) -> list[str]:
     """The wall time and FE runs of each phase."""
     t = result.timings
-    return ["", "## Cost", "",
-            f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
-            f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
-            f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused), "
-            f"next round {t.next_round_s:.0f} s ({t.next_round_fe_runs} runs); "
-            f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
-            f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
-            f"the cache of an earlier run (`fe_runs/`).", ""]
+    return [
+        "",
+        "## Cost",
+        "",
+        f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
+        f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
+        f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused), "
+        f"next round {t.next_round_s:.0f} s ({t.next_round_fe_runs} runs); "
+        f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
+        f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
+        f"the cache of an earlier run (`fe_runs/`).",
+        "",
+    ]
 
 
 def report_dict(result: CheckResult) -> dict:
@@ -274,36 +373,60 @@ def report_dict(result: CheckResult) -> dict:
     d = result.diagnosis
     return {
         "verdict": d.text,
-        "noise": {"sd": result.data.noise.sd.tolist(), "length_mm": result.data.noise.length,
-                  "nugget": result.data.noise.nugget},
+        "noise": {
+            "sd": result.data.noise.sd.tolist(),
+            "length_mm": result.data.noise.length,
+            "nugget": result.data.noise.nugget,
+        },
         "observations": [{"alpha": o.alpha.tolist(), "t": o.t, "source": str(o.path)} for o in result.observations],
         "start": {"from": result.start_from, **dict(zip(result.names[:5], map(float, result.start)))},
-        "discretisation": None if result.discretisation is None else {
-            "mesh": result.discretisation.mesh, "refined": result.discretisation.refined,
-            "relative": result.discretisation.relative, "sigma": result.discretisation.sigma,
-            "resolved": result.discretisation.resolved, "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
-            "amplitude": result.discretisation.amplitude, "amplitude_sd": result.discretisation.amplitude_sd,
+        "discretisation": None
+        if result.discretisation is None
+        else {
+            "mesh": result.discretisation.mesh,
+            "refined": result.discretisation.refined,
+            "relative": result.discretisation.relative,
+            "sigma": result.discretisation.sigma,
+            "resolved": result.discretisation.resolved,
+            "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
+            "amplitude": result.discretisation.amplitude,
+            "amplitude_sd": result.discretisation.amplitude_sd,
             "carried_correlation_length_mm": result.data.model_error.length,
-            "carried_nugget": result.data.model_error.nugget},
-        "noise_statement": {"consistent": result.noise_statement.consistent, "factor": result.noise_statement.factor,
-                            "used_sd": result.data.noise.sd.tolist()},
+            "carried_nugget": result.data.model_error.nugget,
+        },
+        "noise_statement": {
+            "consistent": result.noise_statement.consistent,
+            "factor": result.noise_statement.factor,
+            "used_sd": result.data.noise.sd.tolist(),
+        },
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
         "regions": [dataclasses.asdict(g) for g in d.regions],
         "hotspot": dataclasses.asdict(d.hotspot),
         "candidates": [dict(vars(s)) for s in d.scores],
-        "next_round": None if result.next_round is None else {
-            "after": result.versions[-1].calibration.label, "verdict": result.next_round.text,
+        "next_round": None
+        if result.next_round is None
+        else {
+            "after": result.versions[-1].calibration.label,
+            "verdict": result.next_round.text,
             "regions": [dataclasses.asdict(g) for g in result.next_round.regions],
             "hotspot": dataclasses.asdict(result.next_round.hotspot),
-            "candidates": [dict(vars(s)) for s in result.next_round.scores]},
-        "versions": [{"label": v.calibration.label, "metrics": dataclasses.asdict(v.metrics),
-                      "regions": [dataclasses.asdict(g) for g in v.regions],
-                      "estimates": v.calibration.estimates(), "fe_runs": v.calibration.fe_runs,
-                      "chi2_path": v.calibration.chi2_path}
-                     for v in result.versions],
-        "confirmation_fits": {effect: {"fe_runs": fit.fe_runs, "seconds": fit.seconds, "chi2_path": fit.chi2_path}
-                              for effect, fit in d.fits.items()},
+            "candidates": [dict(vars(s)) for s in result.next_round.scores],
+        },
+        "versions": [
+            {
+                "label": v.calibration.label,
+                "metrics": dataclasses.asdict(v.metrics),
+                "regions": [dataclasses.asdict(g) for g in v.regions],
+                "estimates": v.calibration.estimates(),
+                "fe_runs": v.calibration.fe_runs,
+                "chi2_path": v.calibration.chi2_path,
+            }
+            for v in result.versions
+        ],
+        "confirmation_fits": {
+            effect: {"fe_runs": fit.fe_runs, "seconds": fit.seconds, "chi2_path": fit.chi2_path}
+            for effect, fit in d.fits.items()
+        },
         "timings": dataclasses.asdict(result.timings),
         "fe_seconds_per_run": result.fe_seconds_per_run,
     }
-

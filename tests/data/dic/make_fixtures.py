@@ -31,7 +31,9 @@ HALF = 10.0
 def log_strain(xy: np.ndarray) -> np.ndarray:
     """(n, 3) log strain xx, yy, xy at membrane-frame points (n, 2) [mm]: the truth."""
     x, y = xy[:, 0], xy[:, 1]
-    decay = np.exp(-(np.maximum(np.abs(x) - HALF, 0) / 4) ** 2) * np.exp(-(np.maximum(np.abs(y) - HALF, 0) / 4) ** 2)
+    decay = np.exp(-((np.maximum(np.abs(x) - HALF, 0) / 4) ** 2)) * np.exp(
+        -((np.maximum(np.abs(y) - HALF, 0) / 4) ** 2)
+    )
     e1, e2 = math.log1p(T * ALPHA[0]), math.log1p(T * ALPHA[1])
     exx = e1 * decay + 0.003 * x / 25
     eyy = e2 * decay + 0.002 * y / 25
@@ -123,18 +125,26 @@ GRIDS = {
     "table_percent.txt": lambda: _grid(-12, -12, 4, 7, 7),
 }
 
-FIXTURES = {f.name: f for f in [
-    Fixture("vic3d_classic.csv", "vic", Frame((3.0, -2.0), 30.0), missing=(0, 17, 30)),
-    Fixture("vic2d_classic.csv", "vic", Frame((612.0, 488.0), -20.0, 0.05, True), missing=(5, 40)),
-    Fixture("vic9_extract.csv", "vic9", Frame((-1.5, 2.0), 0.0), missing=(9,)),
-    Fixture("davis8_vectors.txt", "davis8", Frame((48.0, 42.0), 0.0, 0.25), truth="davis8"),
-    Fixture("davis10.csv", "davis10", Frame((1.0, 0.5), 15.0), omitted=(0, 1, 9, 40, 79, 80)),
-    Fixture("davis10_gl.csv", "davis10", Frame((0.0, 0.0), -45.0)),
-    Fixture("DICe_solution_12.txt", "dice", Frame((1024.0, 768.0), 10.0, 0.04, True), missing=(3, 24, 47)),
-    Fixture("table_decimal_comma.csv", "table", Frame((0.5, 0.5), -30.0),
-            ("--strain", "engineering", "--percent"), missing=(2, 33)),
-    Fixture("table_percent.txt", "table", Frame((0.0, 0.0), 0.0), ("--percent",)),
-]}
+FIXTURES = {
+    f.name: f
+    for f in [
+        Fixture("vic3d_classic.csv", "vic", Frame((3.0, -2.0), 30.0), missing=(0, 17, 30)),
+        Fixture("vic2d_classic.csv", "vic", Frame((612.0, 488.0), -20.0, 0.05, True), missing=(5, 40)),
+        Fixture("vic9_extract.csv", "vic9", Frame((-1.5, 2.0), 0.0), missing=(9,)),
+        Fixture("davis8_vectors.txt", "davis8", Frame((48.0, 42.0), 0.0, 0.25), truth="davis8"),
+        Fixture("davis10.csv", "davis10", Frame((1.0, 0.5), 15.0), omitted=(0, 1, 9, 40, 79, 80)),
+        Fixture("davis10_gl.csv", "davis10", Frame((0.0, 0.0), -45.0)),
+        Fixture("DICe_solution_12.txt", "dice", Frame((1024.0, 768.0), 10.0, 0.04, True), missing=(3, 24, 47)),
+        Fixture(
+            "table_decimal_comma.csv",
+            "table",
+            Frame((0.5, 0.5), -30.0),
+            ("--strain", "engineering", "--percent"),
+            missing=(2, 33),
+        ),
+        Fixture("table_percent.txt", "table", Frame((0.0, 0.0), 0.0), ("--percent",)),
+    ]
+}
 
 
 def green(m: np.ndarray) -> np.ndarray:
@@ -197,8 +207,19 @@ def vic2d(fx: Fixture) -> str:
 
 def vic9(fx: Fixture) -> str:
     """VIC 9+ extract: UTF-8 BOM, an image-name line, quoted names with units and tensor, no spaces."""
-    names = ["Index [1]", "X [mm]", "Y [mm]", "Z [mm]", "U [mm]", "V [mm]", "W [mm]", "exx [1] - Lagrange",
-             "eyy [1] - Lagrange", "exy [1] - Lagrange", "sigma [pixel]"]
+    names = [
+        "Index [1]",
+        "X [mm]",
+        "Y [mm]",
+        "Z [mm]",
+        "U [mm]",
+        "V [mm]",
+        "W [mm]",
+        "exx [1] - Lagrange",
+        "eyy [1] - Lagrange",
+        "exy [1] - Lagrange",
+        "sigma [pixel]",
+    ]
     lines = ['"fixture-00000012_0"', ",".join(f'"{n}"' for n in names)]
     strain = _file_tensors(fx, green)
     for i, ((X, Y), e) in enumerate(zip(fx.grid(), strain)):
@@ -225,11 +246,28 @@ def davis10(fx: Fixture) -> bytes:
     points not written. Linear strain (DaVis) written as exp(L) - I; GL names for the GL file."""
     gl = fx.name.endswith("_gl.csv")
     if gl:
-        names = ["x [mm]", "y [mm]", "Transverse strain Exx - GL[S]", "Longitudinal strain Eyy - GL[S]",
-                 "Shear strain Exy - GL[S]", "Maximum shear angle [°]"]
+        names = [
+            "x [mm]",
+            "y [mm]",
+            "Transverse strain Exx - GL[S]",
+            "Longitudinal strain Eyy - GL[S]",
+            "Shear strain Exy - GL[S]",
+            "Maximum shear angle [°]",
+        ]
     else:
-        names = ["x [mm]", "y [mm]", "z [mm]", "X-displacement [mm]", "Y-displacement [mm]", "Z-displacement [mm]",
-                 "Exx [S]", "Eyy [S]", "Exy [S]", "Maximum shear angle [°]", "Max. normal strain [S]"]
+        names = [
+            "x [mm]",
+            "y [mm]",
+            "z [mm]",
+            "X-displacement [mm]",
+            "Y-displacement [mm]",
+            "Z-displacement [mm]",
+            "Exx [S]",
+            "Eyy [S]",
+            "Exy [S]",
+            "Maximum shear angle [°]",
+            "Max. normal strain [S]",
+        ]
     strain = _file_tensors(fx, green if gl else biot)
     lines = [";".join(names)]
     for i, ((x, y), e) in enumerate(zip(fx.grid(), strain)):
@@ -270,8 +308,21 @@ def dice(fx: Fixture) -> str:
         "*** Coordinates given with (0,0) as upper left corner of image, x positive right, y positive down",
         "***",
     ]
-    names = ["SUBSET_ID", "COORDINATE_X", "COORDINATE_Y", "DISPLACEMENT_X", "DISPLACEMENT_Y", "SIGMA", "GAMMA",
-             "BETA", "STATUS_FLAG", "UNCERTAINTY", "VSG_STRAIN_XX", "VSG_STRAIN_YY", "VSG_STRAIN_XY"]
+    names = [
+        "SUBSET_ID",
+        "COORDINATE_X",
+        "COORDINATE_Y",
+        "DISPLACEMENT_X",
+        "DISPLACEMENT_Y",
+        "SIGMA",
+        "GAMMA",
+        "BETA",
+        "STATUS_FLAG",
+        "UNCERTAINTY",
+        "VSG_STRAIN_XX",
+        "VSG_STRAIN_YY",
+        "VSG_STRAIN_XY",
+    ]
     strain = _file_tensors(fx, green)
     lines = preamble + [",".join(names)]
     for i, ((x, y), e) in enumerate(zip(fx.grid(), strain)):
@@ -289,9 +340,11 @@ def dice(fx: Fixture) -> str:
 def table(fx: Fixture) -> bytes:
     """A generic export: UTF-8 BOM, CRLF, '#' preamble, ';' with a decimal comma, non-ASCII names
     without units, engineering (Biot) strain in percent, missing points as 'NaN' and empty fields."""
-    preamble = ["# fixture of skinid tests/test_dic_import.py (tests/data/dic/make_fixtures.py)",
-                "# dic-formats.md 'Other systems': ';', decimal comma, CRLF, # preamble, BOM, localised NaN",
-                "# Stage 12; units: mm, %"]
+    preamble = [
+        "# fixture of skinid tests/test_dic_import.py (tests/data/dic/make_fixtures.py)",
+        "# dic-formats.md 'Other systems': ';', decimal comma, CRLF, # preamble, BOM, localised NaN",
+        "# Stage 12; units: mm, %",
+    ]
     strain = 100 * _file_tensors(fx, biot)
     lines = preamble + ["x;y;εxx;εyy;εxy"]
     for i, ((x, y), e) in enumerate(zip(fx.grid(), strain)):
@@ -303,18 +356,28 @@ def table(fx: Fixture) -> bytes:
 def table_percent(fx: Fixture) -> str:
     """A tab-separated table, coordinates with units, the tensor named (Hencky) but not the
     strain unit: log strain in percent, which only the plausibility check can tell."""
-    lines = ["# fixture of skinid tests/test_dic_import.py (tests/data/dic/make_fixtures.py)",
-             "# dic-formats.md 'Other systems': units in brackets or not at all; strains here in percent",
-             "\t".join(["x [mm]", "y [mm]", "exx - Hencky", "eyy - Hencky", "exy - Hencky"])]
+    lines = [
+        "# fixture of skinid tests/test_dic_import.py (tests/data/dic/make_fixtures.py)",
+        "# dic-formats.md 'Other systems': units in brackets or not at all; strains here in percent",
+        "\t".join(["x [mm]", "y [mm]", "exx - Hencky", "eyy - Hencky", "exy - Hencky"]),
+    ]
     strain = 100 * _file_tensors(fx, lambda m: m)
     for (x, y), e in zip(fx.grid(), strain):
         lines.append("\t".join([f"{x:g}", f"{y:g}"] + [f"{v:.6f}" for v in e]))
     return "\n".join(lines) + "\n"
 
 
-WRITERS = {"vic3d_classic.csv": vic3d, "vic2d_classic.csv": vic2d, "vic9_extract.csv": vic9,
-           "davis8_vectors.txt": davis8, "davis10.csv": davis10, "davis10_gl.csv": davis10,
-           "DICe_solution_12.txt": dice, "table_decimal_comma.csv": table, "table_percent.txt": table_percent}
+WRITERS = {
+    "vic3d_classic.csv": vic3d,
+    "vic2d_classic.csv": vic2d,
+    "vic9_extract.csv": vic9,
+    "davis8_vectors.txt": davis8,
+    "davis10.csv": davis10,
+    "davis10_gl.csv": davis10,
+    "DICe_solution_12.txt": dice,
+    "table_decimal_comma.csv": table,
+    "table_percent.txt": table_percent,
+}
 
 
 def write_all(directory: Path = HERE) -> list[Path]:
