@@ -255,6 +255,7 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
 
 
 def main() -> None:
+    """The benchmark's steps in order (options, cases by seed, the results file): longer than a screen on purpose."""
     import skinfem.model  # noqa: F401  (PETSc initialises collectively: import on every rank first)
     from inference.synthetic import dic_points
 

@@ -55,6 +55,8 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, p
     (median wall time; breakdown and counts per simulation).
 
     ``petsc``: extra ``KEY=VALUE`` PETSc options for the model's solver (without its prefix).
+
+    Longer than a screen: the timed runs and the record of every counter, in order.
     """
     import dataclasses
 
@@ -177,6 +179,8 @@ def convergence(mesh_dir: str) -> None:
 
     Each run is compared with a finer one by averaging the finer field over the coarser
     cells (the in-plane grids nest when h_membrane halves and h_far scales with it).
+
+    Longer than a screen: the table of meshes and elements, then each comparison, in order.
     """
     from mpi4py import MPI
 

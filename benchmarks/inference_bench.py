@@ -48,6 +48,7 @@ def make_paper_posterior(emulator, observed):
 
 
 def main() -> None:
+    """The benchmark's steps in order (options, runs, the results file): longer than a screen on purpose."""
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
     from inference.sampling import sample_posterior

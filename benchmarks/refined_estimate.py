@@ -51,6 +51,7 @@ def variant_config(config, variant: str):
 
 
 def main() -> None:
+    """The benchmark's steps in order (options, variants, the results file): longer than a screen on purpose."""
     import skinfem.model  # noqa: F401  (PETSc initialises collectively: import on every rank first)
     from inference.forward import FEForward, PointSet
     from inference.synthetic import dic_points

@@ -273,7 +273,10 @@ def _measurement_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def _study_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid study test-set|setups|noise|coverage``: many posteriors."""
+    """``skinid study test-set|setups|noise|coverage``: many posteriors.
+
+    Declarative, longer than a screen: one block of options per study.
+    """
     sub = parser.add_subparsers(dest="study", required=True)
     p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
     p.add_argument("--emulator", type=Path, required=True, help="emulator directory")

@@ -154,6 +154,8 @@ def field_grid(
         xy: (n_cells, 2) centroids [mm]; rows: lists of (n_cells,) values (NaN = not observed).
         window: half-width of the shown region [mm].
         symmetric: diverging colour map centred on 0 (else sequential from the minimum).
+
+    Longer than a screen: one panel's drawing steps (field, outline, fibers, colour bar) in order.
     """
     plt = pyplot()
     from matplotlib.tri import Triangulation

@@ -180,6 +180,8 @@ def noise_study(
     its training materials only (with the clean case's number of PCs), validation on its test
     materials, and test-set posteriors for one design (last frame). Resumable: finished files
     are reused. Writes ``<out>/README.md``.
+
+    Longer than a screen: the study's steps per case, in order, and its result record.
     """
     from inference.noise import add_noise
     from surrogate.validation import validate

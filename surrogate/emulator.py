@@ -424,6 +424,8 @@ def fit_emulator(
     Args:
         gp_fraction: share of the training rows the GPs are fitted on (paper: 0.1).
         max_gp_rows: cap on the number of GP rows (exact GP cost grows as rows^3).
+
+    Longer than a screen: the fit's steps in order, then its provenance record field by field.
     """
     unknown = set(components) - set(COMPONENTS)
     if unknown or not components:

@@ -141,7 +141,8 @@ def calibrate(
     run per trial point), else forward differences of ``step`` in the unit box (one run per
     free parameter, spread over MPI ranks by the forward model). The fit stops once a step
     lowers chi^2 by less than ``CHI2_TOLERANCE`` or after ``max_iterations`` trial steps.
-    Returns the Laplace posterior at the optimum.
+    Returns the Laplace posterior at the optimum. Longer than a screen: one Levenberg-Marquardt
+    loop with its rejected-step bookkeeping, kept whole to read as the algorithm.
 
     Raises:
         CalibrationError: the model does not converge at the starting point.

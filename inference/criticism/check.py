@@ -199,6 +199,8 @@ def run_check(
     The emulator, when given, only provides the starting point (its posterior mode); without
     it the start is the best of a few spread points. ``cache_dir`` keeps every finished FE
     simulation on disk; a rerun of the same check (e.g. after a kill) reads them.
+    (Longer than a screen on purpose: the check's phases in order, each timed where it runs,
+    then the result's fields by name.)
     """
     timings = CheckTimings()
     t0 = time.perf_counter()
@@ -213,18 +215,7 @@ def run_check(
 
     t0, runs0 = time.perf_counter(), forward.runs
 
-    def refined() -> FEForward:
-        return FEForward(
-            refined_config(forward.config, settings.refinement),
-            measurements,
-            skin_bounds,
-            mesh_dir,
-            None,
-            comm,
-            cache_dir,
-            settings.gauge,
-        )
-
+    refined = _refined_forward(forward, measurements, skin_bounds, (mesh_dir, comm, cache_dir), settings)
     model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
     baseline, data, noise_statement = check_noise_statement(model, baseline, data, settings.max_iterations // 2)
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
@@ -244,32 +235,9 @@ def run_check(
     t0, runs0 = time.perf_counter(), forward.runs
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
-    next_round = None
-    if settings.add:  # what is still missing with the added effects
-        next_round = diagnose(
-            model,
-            versions[-1].calibration,
-            data,
-            [c for c in settings.candidates if c not in settings.add],
-            half,
-            band,
-            settings.confirm,
-            mesh_resolved=disc is None or disc.resolved,
-            added=settings.add,
-            max_iterations=settings.max_iterations,
-        )
-        timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
+    next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), disc, timings)
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
-    diagnosis.text = " ".join(
-        part
-        for part in (
-            disc.summary() if disc else "",
-            noise_statement.summary(noise.sd),
-            diagnosis.text,
-            f"With {' and '.join(settings.add)} added, the diagnosis repeated: {next_round.text}" if next_round else "",
-        )
-        if part
-    )
+    diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
     return CheckResult(
         data=data,
         observations=measurements,
@@ -292,6 +260,69 @@ def run_check(
         fe_seconds_per_run=forward.seconds / max(forward.runs, 1) * comm.size,
         timings=timings,
     )
+
+
+def _refined_forward(
+    forward: FEForward,
+    measurements: list[Measurement],
+    skin_bounds: np.ndarray,
+    where: tuple,
+    settings: CheckSettings,
+) -> Callable[[], FEForward]:
+    """The forward model on the refined mesh of the discretisation estimate, built only when the
+    estimate asks for it. ``where``: (mesh_dir, comm, cache_dir) as for the check's own model."""
+    mesh_dir, comm, cache_dir = where
+    return lambda: FEForward(
+        refined_config(forward.config, settings.refinement),
+        measurements,
+        skin_bounds,
+        mesh_dir,
+        None,
+        comm,
+        cache_dir,
+        settings.gauge,
+    )
+
+
+def _next_round(
+    model: ForwardModel,
+    last: Calibration,
+    data: Data,
+    settings: CheckSettings,
+    region: tuple[float, float],
+    disc: DiscretisationError | None,
+    timings: CheckTimings,
+) -> Diagnosis | None:
+    """With ``settings.add``: the diagnosis repeated on the last version, over the candidates not
+    added (what is still missing); None otherwise. ``region``: the membrane's half size and the
+    edge band [mm]."""
+    if not settings.add:
+        return None
+    next_round = diagnose(
+        model,
+        last,
+        data,
+        [c for c in settings.candidates if c not in settings.add],
+        *region,
+        settings.confirm,
+        mesh_resolved=disc is None or disc.resolved,
+        added=settings.add,
+        max_iterations=settings.max_iterations,
+    )
+    timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
+    return next_round
+
+
+def _verdict(
+    disc: DiscretisationError | None,
+    noise_text: str,
+    diagnosis: Diagnosis,
+    added: list[str],
+    next_round: Diagnosis | None,
+) -> str:
+    """The check's paragraph: the mesh's own error, the noise statement, the diagnosis, the next round."""
+    again = f"With {' and '.join(added)} added, the diagnosis repeated: {next_round.text}" if next_round else ""
+    return " ".join(part for part in (disc.summary() if disc else "", noise_text, diagnosis.text, again) if part)
 
 
 def compare(

@@ -369,7 +369,10 @@ def cost_lines(result: CheckResult) -> list[str]:
 
 
 def report_dict(result: CheckResult) -> dict:
-    """Everything the report states, machine-readable."""
+    """Everything the report states, machine-readable.
+
+    One literal naming every field of report.json: longer than a screen on purpose.
+    """
     d = result.diagnosis
     return {
         "verdict": d.text,
