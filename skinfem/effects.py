@@ -22,6 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 import ufl
+from ufl.core.expr import Expr
 
 from skinfem.materials import LaminaStiffness
 
@@ -57,13 +58,13 @@ class ModelTerms:
         x: the reference coordinates (UFL SpatialCoordinate) [mm]; z = 0 is the skin surface.
     """
 
-    skin_map: object
-    skin_prestretch: object
-    skin_bulk_ratio: object
-    muscle_mu: object
-    lamina: LaminaStiffness
-    skin_stiffness: object = 1.0
-    x: object = None
+    skin_map: Expr
+    skin_prestretch: Expr
+    skin_bulk_ratio: Expr | float
+    muscle_mu: Expr | float
+    lamina: LaminaStiffness | None
+    skin_stiffness: Expr | float = 1.0
+    x: Expr | None = None
 
 
 class Effect:
