@@ -34,29 +34,34 @@ def run(*args: str) -> None:
 
 def overview(out: Path, top: Path, bottom: list[Path]) -> Path:
     """One figure of the demo for the README: strain maps on top; where the model fails and the
-    error falling below."""
+    error falling below. The figures are placed at their own pixel size (no rescaling), so their
+    fonts, drawn at the same size and dpi, stay the same size in the montage."""
     from inference.plots import pyplot
 
     plt = pyplot()
-    top_image, images = plt.imread(top), [plt.imread(p) for p in bottom]
-    ratios = [im.shape[1] / im.shape[0] for im in images]
-    width = 16.0
-    bottom_height = width / sum(ratios)
-    top_height = width * top_image.shape[0] / top_image.shape[1]
-    fig = plt.figure(figsize=(width, top_height + bottom_height))
-    grid = fig.add_gridspec(
-        2, len(images), height_ratios=[top_height, bottom_height], width_ratios=ratios, hspace=0.02, wspace=0.02
-    )
-    ax = fig.add_subplot(grid[0, :])
-    ax.imshow(top_image)
-    ax.axis("off")
-    for k, im in enumerate(images):
-        ax = fig.add_subplot(grid[1, k])
-        ax.imshow(im)
-        ax.axis("off")
-    fig.savefig(out / "overview.png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    top_image, *images = (_rgb(plt.imread(p)) for p in (top, *bottom))
+    row = _pad_stack(images, axis=1)
+    plt.imsave(out / "overview.png", _pad_stack([top_image, row], axis=0))
     return out / "overview.png"
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    """(h, w, 3) floats in [0, 1] of a PNG read by matplotlib (alpha dropped)."""
+    return image[..., :3].astype(float)
+
+
+def _pad_stack(images: list[np.ndarray], axis: int) -> np.ndarray:
+    """Images side by side (axis 1) or one above the other (axis 0), centred and padded with
+    white to a common height (width)."""
+    across = 1 - axis
+    size = max(im.shape[across] for im in images)
+    padded = []
+    for im in images:
+        before = (size - im.shape[across]) // 2
+        pad = [(0, 0)] * 3
+        pad[across] = (before, size - im.shape[across] - before)
+        padded.append(np.pad(im, pad, constant_values=1.0))
+    return np.concatenate(padded, axis=axis)
 
 
 def run_parallel(*args: str) -> None:
