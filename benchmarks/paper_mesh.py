@@ -9,14 +9,17 @@
         --warmup 300 --draws 300 --out out/paper_noise
     skinid study noise --data out/paper_mixed_256.h5 --designs 0 --gp-fraction 0.7 --restarts 0 \
         --warmup 300 --draws 300 --lengths 0.1 --levels 0.01 0.1 --out out/paper_noise_256
-    # 4. the side-by-side table (benchmarks/results/paper_mesh/)
+    # 4. the side-by-side table and the coverage of the noise cases (benchmarks/results/paper_mesh/)
     python benchmarks/paper_mesh.py table --run "paper mesh=out/paper_noise" \
         --run "paper mesh, 256 cells=out/paper_noise_256" \
         --run "study mesh=benchmarks/results/noise_study"
+    python benchmarks/paper_mesh.py coverage --study out/paper_noise
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
-data each run came from.
+data each run came from. ``coverage`` reads every posterior of a noise study again and gives, per
+noise case and pooled, the coverage of the central 50 % and 95 % intervals and the truth's ranks
+(as ``skinid study coverage``).
 """
 
 from __future__ import annotations
@@ -149,6 +152,47 @@ def side_by_side(runs: list[StudyRun]) -> str:
     return "\n".join(lines)
 
 
+def study_cases(folder: Path) -> dict[str, list]:
+    """Per noise case of a study folder: a :class:`inference.coverage.CaseResult` per test material,
+    from its ``posterior.nc`` (draws, divergences) and ``summary.json`` (truth, prior)."""
+    import arviz as az
+
+    from inference.coverage import case_result
+    from inference.sampling import PosteriorSummary
+
+    cases = {}
+    for case in sorted(p for p in (folder / "cases").iterdir() if (p / "posteriors").is_dir()):
+        results = []
+        for material in sorted(m.parent for m in (case / "posteriors").glob("material_*/summary.json")):
+            summary = PosteriorSummary.load(material / "summary.json")
+            tree = az.from_netcdf(material / "posterior.nc")
+            draws = np.stack([tree.posterior[n].values.reshape(-1) for n in PARAMS], 1)
+            truth = np.array([summary.parameters[n].true for n in PARAMS])
+            bounds = np.array([summary.parameters[n].prior for n in PARAMS])
+            results.append(case_result(draws, truth, bounds, int(tree.sample_stats["diverging"].values.sum())))
+        cases[case.name] = results
+    return cases
+
+
+def coverage_table(cases: dict[str, list]) -> tuple[str, dict]:
+    """Markdown table and JSON record of the 50 % / 95 % coverage per case and pooled over the noisy ones."""
+    pooled = [r for name, results in cases.items() if name != "clean" for r in results]
+    rows, record = [], {}
+    for name, results in {**cases, "all noisy cases": pooled}.items():
+        if not results:
+            continue
+        c50 = np.mean([r.covered_50 for r in results], axis=0)
+        c95 = np.mean([r.covered_95 for r in results], axis=0)
+        record[name] = {
+            "n": len(results),
+            "coverage_50": dict(zip(PARAMS, c50.round(3).tolist())),
+            "coverage_95": dict(zip(PARAMS, c95.round(3).tolist())),
+        }
+        rows.append(f"| {name} | {len(results)} | " + " | ".join(f"{a:.2f} / {b:.2f}" for a, b in zip(c50, c95)) + " |")
+    header = ["| case | n | " + " | ".join(SYMBOLS[n] for n in PARAMS) + " |", "|---|---|" + "---|" * len(PARAMS)]
+    return "\n".join(header + rows), record
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -159,6 +203,9 @@ def main() -> None:
     p = sub.add_parser("table", help="side-by-side table of noise studies")
     p.add_argument("--run", action="append", required=True, help="LABEL=FOLDER (repeat)")
     p.add_argument("--results", type=Path, default=RESULTS)
+    p = sub.add_parser("coverage", help="50 / 95 % coverage and truth ranks of a noise study's posteriors")
+    p.add_argument("--study", type=Path, required=True)
+    p.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.command == "subset":
         from skinfem.io import StrainDataset
@@ -168,6 +215,18 @@ def main() -> None:
         cells = grid_subset(StrainDataset.open(args.data).xy, args.every)
         write_subset(args.data, cells, args.out)
         print(f"wrote {args.out}: {len(cells)} cells")
+        return
+    if args.command == "coverage":
+        from inference.coverage import rank_histograms
+
+        cases = study_cases(args.study)
+        table, record = coverage_table(cases)
+        args.results.mkdir(parents=True, exist_ok=True)
+        (args.results / "coverage.json").write_text(json.dumps({"study": str(args.study), **record}, indent=1) + "\n")
+        noisy = np.array([r.rank for name, results in cases.items() if name != "clean" for r in results])
+        if len(noisy):
+            rank_histograms(noisy, args.results / "ranks_noise_cases.png", f"noise cases: {len(noisy)} posteriors")
+        print(table)
         return
     runs = [StudyRun.read(spec) for spec in args.run]
     args.results.mkdir(parents=True, exist_ok=True)

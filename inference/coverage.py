@@ -118,15 +118,20 @@ def run_case(
         progress=False,
     )
     draws = samples.draws[..., :5].reshape(-1, 5)
+    return case_result(draws, data.params[case.material], emulator.param_bounds, int(samples.diverging.sum()))
+
+
+def case_result(draws: np.ndarray, truth: np.ndarray, bounds: np.ndarray, divergences: int) -> CaseResult:
+    """Rank and interval coverage of the truth (5,) among posterior ``draws`` (n, 5) of the skin
+    parameters (theta in degrees), interval widths as shares of the prior ``bounds`` (5, 2)."""
     thinned = draws[np.linspace(0, len(draws) - 1, RANK_DRAWS).astype(int)]
-    truth = data.params[case.material]
     lo50, hi50, lo95, hi95 = np.percentile(draws, [25, 75, 2.5, 97.5], axis=0)
     return CaseResult(
         rank=tuple(int(r) for r in np.sum(thinned < truth, axis=0)),
         covered_50=tuple(bool(v) for v in (lo50 <= truth) & (truth <= hi50)),
         covered_95=tuple(bool(v) for v in (lo95 <= truth) & (truth <= hi95)),
-        interval_share_95=tuple(float(v) for v in (hi95 - lo95) / np.ptp(emulator.param_bounds, axis=1)),
-        divergences=int(samples.diverging.sum()),
+        interval_share_95=tuple(float(v) for v in (hi95 - lo95) / np.ptp(bounds, axis=1)),
+        divergences=divergences,
     )
 
 

@@ -94,3 +94,22 @@ def test_the_side_by_side_table_has_a_row_per_case_and_run(paper_mesh, tmp_path)
     assert lines[2] == "| clean | a | " + "0.10 / 100% | " * 5 + "μ, k₁, k₂, κ, θ |"
     assert lines[3].startswith("| clean | b | 0.20 / 90%") and lines[4].endswith("| none |")
     assert len(lines) == 5  # header, rule, clean a, clean b, s1 a (b has no s1)
+
+
+def test_the_coverage_table_counts_each_case_and_pools_the_noisy_ones(paper_mesh):
+    from inference.coverage import case_result
+
+    rng = np.random.default_rng(3)
+    bounds = np.array([[0.0, 1.0]] * 5)
+    draws = rng.uniform(0.4, 0.6, size=(400, 5))  # 50 % interval ~[0.45, 0.55], 95 % ~[0.405, 0.595]
+    inside, outside = np.full(5, 0.5), np.full(5, 0.9)
+    hit, miss = case_result(draws, inside, bounds, 0), case_result(draws, outside, bounds, 2)
+    assert hit.covered_50 == (True,) * 5 and miss.covered_95 == (False,) * 5 and miss.rank == (99,) * 5
+    table, record = paper_mesh.coverage_table({"clean": [hit, hit], "s1": [hit, miss], "l10": [miss, miss]})
+    assert record["clean"]["coverage_95"]["mu"] == 1.0 and record["s1"]["coverage_50"]["theta"] == 0.5
+    assert record["all noisy cases"] == {
+        "n": 4,
+        "coverage_50": dict.fromkeys(paper_mesh.PARAMS, 0.25),
+        "coverage_95": dict.fromkeys(paper_mesh.PARAMS, 0.25),
+    }
+    assert table.splitlines()[-1].startswith("| all noisy cases | 4 | 0.25 / 0.25")
