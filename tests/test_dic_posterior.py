@@ -34,10 +34,9 @@ import numpy as np
 import pytest
 
 from inference.__main__ import check_strain_scale, main
-from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, map_to_cells, read_measurement, write_measurement
-from inference.sampling import PosteriorSummary, sample_posterior
-from inference.studies import SamplerSettings
+from inference.sampling import PosteriorSummary
+from inference.studies import SamplerSettings, posterior_of
 from skinfem.config import PARAM_NAMES, load_config
 from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
 from surrogate.emulator import Emulator, fit_emulator
@@ -355,25 +354,8 @@ def posteriors(files, field, emulator, tmp_path_factory):
 
 
 def posterior_summary(emulator: Emulator, observation: Observation) -> PosteriorSummary:
-    """The posterior summary of one observation: what ``inference.studies.posterior_of`` does
-    (same posterior and sampler call), without writing files."""
-    posterior = SkinPosterior(
-        emulator,
-        ObservedWeights.project(emulator, [observation]),
-        noise="known",
-        gp_variance=SETTINGS.gp_variance,
-        emulator_error=SETTINGS.emulator_error,
-    )
-    samples = sample_posterior(
-        posterior,
-        chains=SETTINGS.chains,
-        warmup=SETTINGS.warmup,
-        draws=SETTINGS.draws,
-        seed=SETTINGS.seed,
-        n_jobs=SETTINGS.n_jobs,
-        progress=SETTINGS.progress,
-    )
-    return samples.summary()
+    """The posterior summary of one observation with the stated noise, as ``skinid infer`` samples it."""
+    return posterior_of(emulator, [observation], SETTINGS, None, noise="known")
 
 
 def agreement(a: PosteriorSummary, b: PosteriorSummary, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
