@@ -15,6 +15,14 @@ from inference.forward import ForwardModel
 CHI2_TOLERANCE = 0.1
 
 
+@dataclass(frozen=True)
+class Estimate:
+    """A calibrated parameter: its value and Laplace standard deviation (the parameter's unit)."""
+
+    value: float
+    sd: float
+
+
 @dataclass
 class Calibration:
     """A calibrated model version: point estimate, Laplace covariance, residuals.
@@ -55,12 +63,11 @@ class Calibration:
     def sd(self) -> np.ndarray:
         return np.sqrt(np.diag(self.cov))
 
-    def estimates(self) -> dict[str, dict[str, float]]:
+    def estimates(self) -> dict[str, Estimate]:
+        """The fitted value and Laplace sd of every free parameter, by qualified name."""
         sd = dict(zip(self.free_names, self.sd))
         return {
-            n: {"value": float(self.x[i]), "sd": float(sd.get(n, 0.0))}
-            for i, n in enumerate(self.names)
-            if i in self.free
+            n: Estimate(float(self.x[i]), float(sd.get(n, 0.0))) for i, n in enumerate(self.names) if i in self.free
         }
 
 

@@ -337,7 +337,7 @@ def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
         cells = []
         for v in result.versions:
             e = v.calibration.estimates().get(name)
-            cells.append(f"{_fmt(e['value'])} ± {_fmt(e['sd'])}" if e else "—")
+            cells.append(f"{_fmt(e.value)} ± {_fmt(e.sd)}" if e else "—")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     final = result.versions[-1].calibration
     added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:]) if name in EFFECTS]
@@ -420,7 +420,7 @@ def report_dict(result: CheckResult) -> dict:
                 "label": v.calibration.label,
                 "metrics": dataclasses.asdict(v.metrics),
                 "regions": [dataclasses.asdict(g) for g in v.regions],
-                "estimates": v.calibration.estimates(),
+                "estimates": {n: dataclasses.asdict(e) for n, e in v.calibration.estimates().items()},
                 "fe_runs": v.calibration.fe_runs,
                 "chi2_path": v.calibration.chi2_path,
             }
