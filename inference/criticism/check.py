@@ -217,7 +217,9 @@ def run_check(
 
     refined = _refined_forward(forward, measurements, skin_bounds, (mesh_dir, comm, cache_dir), settings)
     model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
-    baseline, data, noise_statement = check_noise_statement(model, baseline, data, settings.max_iterations // 2)
+    baseline, data, noise_statement = check_noise_statement(
+        model, baseline, data, (half, band), settings.max_iterations // 2
+    )
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     diagnosis = diagnose(
         model,

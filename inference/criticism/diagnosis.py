@@ -17,6 +17,7 @@ from inference.criticism.metrics import (
     RegionResidual,
     ResidualMetrics,
     rank_regions,
+    region_heterogeneity,
     residual_hotspot,
     residual_metrics,
 )
@@ -36,6 +37,7 @@ class NoiseStatement:
     factor: float  # estimated sd / stated sd (1 when consistent)
     moran_z: float
     chi2_per_dof: float
+    heterogeneity_z: float = 0.0  # how unevenly the residual spreads over the regions (metrics.region_heterogeneity)
 
     def summary(self, stated: np.ndarray) -> str:
         if self.consistent:
@@ -44,25 +46,32 @@ class NoiseStatement:
         return (
             f"The stated noise is inconsistent with the residual: it is {self.factor:.1f}x larger than stated "
             f"(chi^2/dof = {self.chi2_per_dof:.2f}) but has the stated noise's spatial structure (Moran's I "
-            f"z = {self.moran_z:.1f}); the check continues with the estimated sd {estimated} (xx, yy, xy) "
-            "instead of looking for a missing effect in it (give --noise-sd to state it)."
+            f"z = {self.moran_z:.1f}) and spreads evenly over the regions (z = {self.heterogeneity_z:.1f}); "
+            f"the check continues with the estimated sd {estimated} (xx, yy, xy) instead of looking for a "
+            "missing effect in it (give --noise-sd to state it)."
         )
 
 
 def check_noise_statement(
-    forward: ForwardModel, cal: Calibration, data: Data, max_iterations: int = 6
+    forward: ForwardModel, cal: Calibration, data: Data, region: tuple[float, float], max_iterations: int = 6
 ) -> tuple[Calibration, Data, NoiseStatement]:
     """Is a structured residual only noise larger than stated?
 
-    Moran's I does not depend on the residual's scale: a residual that is larger than the
-    stated noise (PPC p < metrics.ALPHA) but whose spatial autocorrelation is that of the stated noise
-    model (|z| < NOISE_STRUCTURE_Z) is read as understated noise, not as missing physics
-    (missing effects are smooth fields: large z). The noise sd is then scaled by
+    Neither Moran's I nor the spread over the regions depends on the residual's scale: a
+    residual that is larger than the stated noise (PPC p < metrics.ALPHA) but whose spatial
+    autocorrelation is that of the stated noise model (|z| < NOISE_STRUCTURE_Z) and whose mean
+    square is as even over the regions (membrane, edges, corners, far field; ``region``: the
+    membrane's half size and the edge band [mm]) as the noise model's (z < NOISE_STRUCTURE_Z)
+    is read as understated noise, not as missing physics (missing effects are smooth fields,
+    large Moran z, or peak at the membrane's edges and corners). The noise sd is then scaled by
     sqrt(chi^2/dof) and the calibration repeated with it.
     """
     metrics = residual_metrics(cal, data)
     statement = NoiseStatement(True, 1.0, metrics.moran_z, metrics.chi2_per_dof)
     if not metrics.structured or abs(metrics.moran_z) >= NOISE_STRUCTURE_Z:
+        return cal, data, statement
+    statement.heterogeneity_z = region_heterogeneity(cal, data, *region)
+    if statement.heterogeneity_z >= NOISE_STRUCTURE_Z:
         return cal, data, statement
     statement.consistent, statement.factor = False, math.sqrt(metrics.chi2_per_dof)
     noise = NoiseModel(data.noise.sd * statement.factor, data.noise.length, data.noise.nugget)
