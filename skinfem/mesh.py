@@ -276,13 +276,25 @@ def _generate(gmsh, tmp: Path, skin_volumes: list[int]) -> tuple[int, int, int]:
 
 
 def ensure_mesh(config: Config, directory: Path | str = DEFAULT_MESH_DIR, comm=None) -> Path:
-    """Return the mesh file for ``config``, generating it (on rank 0) if it does not exist."""
+    """Return the mesh file for ``config``, generating it (on rank 0) if it does not exist.
+
+    Raises:
+        ValueError: on every rank, when rank 0 cannot write the mesh there.
+    """
     path = mesh_path(config, directory)
     rank = 0 if comm is None else comm.rank
+    error = None
     if rank == 0 and not path.exists():
-        build_mesh(config, path)
+        try:
+            build_mesh(config, path)
+        except OSError as exc:  # a --mesh-dir that is a file, an unwritable folder
+            folder = Path(directory)
+            reason = f"'{folder}' is a file, not a folder" if folder.is_file() else exc.strerror or str(exc)
+            error = f"cannot write the mesh '{path}' ({reason})"
     if comm is not None:
-        comm.barrier()
+        error = comm.bcast(error, root=0)  # every rank refuses together
+    if error is not None:
+        raise ValueError(error)
     return path
 
 
@@ -293,6 +305,7 @@ def read_mesh(path: Path | str, comm):
 
     Raises:
         FileNotFoundError: with the path and how to create the mesh.
+        ValueError: on every rank, when rank 0 cannot read the file.
     """
     import gmsh
 
@@ -302,13 +315,26 @@ def read_mesh(path: Path | str, comm):
     exists = comm.bcast(path.is_file() if comm.rank == 0 else None, root=0)
     if not exists:
         raise FileNotFoundError(f"mesh file '{path}' does not exist; create it with `skinid mesh --config <config>`")
-    if comm.rank != 0:
-        return dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, 0, gdim=3)
-    gmsh.initialize(interruptible=False)
+    if comm.rank == 0:
+        gmsh.initialize(interruptible=False)
     try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add("skinid-read")
-        gmsh.merge(str(path))
+        error = comm.bcast(_load_on_root(gmsh, path) if comm.rank == 0 else None, root=0)
+        if error is not None:  # every rank refuses together: none waits in the collective read
+            raise ValueError(f"mesh file '{path}' cannot be read ({error}); delete it and run `skinid mesh`")
         return dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     finally:
-        gmsh.finalize()
+        if comm.rank == 0:
+            gmsh.finalize()
+
+
+def _load_on_root(gmsh, path: Path) -> str | None:
+    """Read ``path`` into gmsh's model; the reason it is unusable, or None."""
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.model.add("skinid-read")
+    try:
+        gmsh.merge(str(path))
+    except Exception as exc:  # gmsh raises a bare Exception carrying its last error
+        return str(exc) or "gmsh could not read it"
+    if not gmsh.model.getEntities(3):
+        return "it holds no volume"
+    return None

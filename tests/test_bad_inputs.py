@@ -29,6 +29,8 @@ import json
 import os
 import shlex
 import shutil
+import subprocess
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +39,7 @@ import numpy as np
 import pytest
 
 from inference.observations import write_measurement
-from tests.cli_helpers import skinid
+from tests.cli_helpers import MPIRUN, skinid, skinid_command, skinid_env
 from tests.test_cli_conventions import OLD_BYTES, fake_dataset, old_output
 
 DIC = Path(__file__).parent / "data" / "dic" / "vic9_extract.csv"
@@ -860,3 +862,28 @@ def test_a_refused_command_prints_no_petsc_options(arguments, message, tmp_path)
     assert_refused(res.returncode, res.stderr, message)
     assert PETSC_WARNING not in res.stdout + res.stderr
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+@pytest.mark.parametrize("case", ["corrupt mesh file", "mesh folder is a file"])
+def test_a_bad_mesh_ends_every_rank_at_once_with_one_line(case, tmp_path):
+    """Under mpirun -n 2 rank 0 reads (or writes) the mesh; when it cannot, every rank refuses
+    together (it used to leave rank 1 waiting in the collective read forever)."""
+    folder = tmp_path / "meshes"
+    if case == "corrupt mesh file":
+        assert skinid("mesh", "--config", "small", "--mesh-dir", folder).returncode == 0
+        (msh,) = folder.glob("*.msh")
+        msh.write_bytes(msh.read_bytes()[:3000])
+        expected = "cannot be read"
+    else:
+        folder.write_text("not a folder")
+        expected = "is a file, not a folder"
+    args = ["--mu", 0.001, "--k1", 0.015, "--k2", 10, "--kappa", 0.28, "--theta", 30, "--alpha", 0.05, -0.05]
+    command = skinid_command("simulate", "--mesh-dir", folder, *args, "--out", tmp_path / "x.h5", ranks=2)
+    start = time.perf_counter()
+    res = subprocess.run(command, capture_output=True, text=True, env=skinid_env(), timeout=120)
+    assert res.returncode == 2 and time.perf_counter() - start < 60, res.stderr[-2000:]
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and expected in lines[0], res.stderr[-2000:]
+    assert not (tmp_path / "x.h5").exists()
