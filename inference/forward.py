@@ -278,12 +278,17 @@ class FEForward(ForwardModel):
         return self.cache_dir / f"{hashlib.sha256(self._setup_hash.encode() + key).hexdigest()[:32]}{suffix}"
 
     def _from_disk(self, keys: list[bytes]) -> dict[bytes, np.ndarray | None]:
-        """Cached fields (None: a cached failure) of ``keys`` (read on rank 0, shared with all)."""
+        """Cached fields (None: a cached failure) of ``keys`` (read on rank 0, shared with all; a
+        damaged file is skipped, so the point is simulated again and rewritten, and no rank is
+        left waiting for rank 0)."""
         found = {}
         if self.cache_dir is not None and self.comm.rank == 0:
             for key in keys:
                 if self._cache_file(key).exists():
-                    found[key] = np.load(self._cache_file(key))
+                    try:
+                        found[key] = np.load(self._cache_file(key))
+                    except (ValueError, OSError, EOFError):  # a damaged entry: the point runs again
+                        continue
                 elif self._cache_file(key, ".failed").exists():
                     found[key] = None
         return self.comm.bcast(found)

@@ -294,7 +294,7 @@ def test_a_prestretch_with_the_noises_autocorrelation_is_not_read_as_understated
 
 def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
     """FEForward's disk cache: a new instance reads finished points without simulating; another
-    setup (increments) does not see them; no partial files are left."""
+    setup (increments) does not see them; no partial files are left; a damaged file is run again."""
     first, _ = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
     points = [first.null, first.null + 0.1 * np.ptp(first.bounds, axis=1)]
     fields = first.evaluate_many(points)
@@ -310,6 +310,13 @@ def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
     other, _ = mixed_design_fe(small_config, mesh_dir, increments=1, cache_dir=tmp_path)
     other.evaluate_many(points[:1])
     assert other.runs == 1 and other.reused == 0
+
+    damaged = sorted(tmp_path.glob("*.npy"), key=lambda f: f.stat().st_mtime)[0]  # one of the first two
+    damaged.write_bytes(damaged.read_bytes()[:100])
+    repaired, _ = mixed_design_fe(small_config, mesh_dir, cache_dir=tmp_path)
+    for a, b in zip(repaired.evaluate_many(points), fields):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    assert repaired.runs == 1 and repaired.reused == 1  # the damaged point ran again
 
 
 def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emulator, tmp_path):
