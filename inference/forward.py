@@ -36,7 +36,7 @@ from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
 from skinfem.model import Factorisation
-from skinfem.parallel import collective, on_root
+from skinfem.parallel import collective
 from skinfem.sensitivity import DisplacementSensitivity
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
@@ -164,7 +164,7 @@ class FEForward(ForwardModel):
         self.config = config
         self.names, self.bounds, self.null = parameter_space(skin_bounds, list(EFFECTS))
         self.comm = comm
-        on_root(comm, lambda: ensure_mesh(config, mesh_dir))  # built once, before any rank reads it
+        ensure_mesh(config, mesh_dir, comm)  # built once on rank 0, before any rank reads it
         self.model = collective(
             comm, lambda: SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir, effects=list(EFFECTS))
         )

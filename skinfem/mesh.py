@@ -279,23 +279,25 @@ def ensure_mesh(config: Config, directory: Path | str = DEFAULT_MESH_DIR, comm=N
     """Return the mesh file for ``config``, generating it (on rank 0) if it does not exist.
 
     Raises:
-        ValueError: on every rank, when rank 0 cannot write the mesh there.
+        ValueError: the mesh cannot be written there (with ``comm``: CollectiveError on every rank).
     """
     path = mesh_path(config, directory)
-    rank = 0 if comm is None else comm.rank
-    error = None
-    if rank == 0 and not path.exists():
-        try:
-            build_mesh(config, path)
-        except OSError as exc:  # a --mesh-dir that is a file, an unwritable folder
-            folder = Path(directory)
-            reason = f"'{folder}' is a file, not a folder" if folder.is_file() else exc.strerror or str(exc)
-            error = f"cannot write the mesh '{path}' ({reason})"
-    if comm is not None:
-        error = comm.bcast(error, root=0)  # every rank refuses together
-    if error is not None:
-        raise ValueError(error)
-    return path
+
+    def build() -> Path:
+        if not path.exists():
+            try:
+                build_mesh(config, path)
+            except OSError as exc:  # a --mesh-dir that is a file, an unwritable folder
+                folder = Path(directory)
+                reason = f"'{folder}' is a file, not a folder" if folder.is_file() else exc.strerror or str(exc)
+                raise ValueError(f"cannot write the mesh '{path}' ({reason})") from None
+        return path
+
+    if comm is None:
+        return build()
+    from skinfem.parallel import on_root
+
+    return on_root(comm, build)
 
 
 def read_mesh(path: Path | str, comm):
@@ -305,11 +307,12 @@ def read_mesh(path: Path | str, comm):
 
     Raises:
         FileNotFoundError: with the path and how to create the mesh.
-        ValueError: on every rank, when rank 0 cannot read the file.
+        CollectiveError: on every rank, when rank 0 cannot read the file.
     """
     import gmsh
 
     from skinfem.fenics import dolfinx  # imports dolfinx.io.gmsh after the wheel's PETSc/MPICH
+    from skinfem.parallel import on_root
 
     path = Path(path)
     exists = comm.bcast(path.is_file() if comm.rank == 0 else None, root=0)
@@ -318,23 +321,26 @@ def read_mesh(path: Path | str, comm):
     if comm.rank == 0:
         gmsh.initialize(interruptible=False)
     try:
-        error = comm.bcast(_load_on_root(gmsh, path) if comm.rank == 0 else None, root=0)
-        if error is not None:  # every rank refuses together: none waits in the collective read
-            raise ValueError(f"mesh file '{path}' cannot be read ({error}); delete it and run `skinid mesh`")
+        on_root(comm, lambda: _load(gmsh, path))  # every rank refuses together: none waits in the read
         return dolfinx.io.gmsh.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     finally:
         if comm.rank == 0:
             gmsh.finalize()
 
 
-def _load_on_root(gmsh, path: Path) -> str | None:
-    """Read ``path`` into gmsh's model; the reason it is unusable, or None."""
+def _load(gmsh, path: Path) -> None:
+    """Read ``path`` into gmsh's model (rank 0).
+
+    Raises:
+        ValueError: gmsh cannot read it, or it holds no volume.
+    """
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.model.add("skinid-read")
     try:
         gmsh.merge(str(path))
     except Exception as exc:  # gmsh raises a bare Exception carrying its last error
-        return str(exc) or "gmsh could not read it"
-    if not gmsh.model.getEntities(3):
-        return "it holds no volume"
-    return None
+        reason = str(exc) or "gmsh could not read it"
+    else:
+        reason = None if gmsh.model.getEntities(3) else "it holds no volume"
+    if reason is not None:
+        raise ValueError(f"mesh file '{path}' cannot be read ({reason}); delete it and run `skinid mesh`")
