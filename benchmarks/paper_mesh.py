@@ -25,7 +25,6 @@ noise case and pooled, the coverage of the central 50 % and 95 % intervals and t
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,11 +60,10 @@ def grid_subset(xy: np.ndarray, every: int) -> np.ndarray:
 
 def write_subset(data_path: Path, cells: np.ndarray, out: Path) -> Path:
     """A copy of a dataset holding only ``cells`` (same materials, designs, frames, status)."""
-    from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
+    from skinfem.io import StrainDataset, copy_simulations, create_dataset
     from skinfem.outputs import write_atomically
 
     data = StrainDataset.open(data_path)
-    n_mat, n_des, _, _ = data.shape
 
     def write(tmp: Path) -> None:
         create_dataset(
@@ -81,27 +79,9 @@ def write_subset(data_path: Path, cells: np.ndarray, out: Path) -> Path:
             bounds=np.stack([data.lower, data.upper], 1),
             versions=data.versions,
         )
-        for i in range(n_mat):
-            block = data.strain(i)[:, :, cells]
-            for j in range(n_des):
-                status = int(data.status[i, j])
-                if status == STATUS_OK:
-                    write_simulation(
-                        tmp, i, j, block[j], status, "", int(data.newton_iterations[i, j]), float(data.seconds[i, j])
-                    )
-                elif status != 0:
-                    write_simulation(tmp, i, j, None, status, data.messages[i, j])
+        copy_simulations(data, tmp, lambda i: data.strain(i)[:, :, cells])
 
     return write_atomically(out, write)
-
-
-def sha256(path: Path) -> str:
-    """Hex sha256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 @dataclass(frozen=True)
@@ -228,6 +208,8 @@ def main() -> None:
             rank_histograms(noisy, args.results / "ranks_noise_cases.png", f"noise cases: {len(noisy)} posteriors")
         print(table)
         return
+    from skinfem.mesh import file_sha256
+
     runs = [StudyRun.read(spec) for spec in args.run]
     args.results.mkdir(parents=True, exist_ok=True)
     sources = {}
@@ -236,7 +218,7 @@ def main() -> None:
         sources[run.label] = {
             "folder": str(run.folder),
             "data": data,
-            "data_sha256": sha256(Path(data)) if data and Path(data).is_file() else None,
+            "data_sha256": file_sha256(data) if data and Path(data).is_file() else None,
         }
     table = side_by_side(runs)
     (args.results / "side_by_side.md").write_text(

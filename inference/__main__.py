@@ -62,13 +62,12 @@ def design_indices(text: str | None, designs: np.ndarray, path: Path, option: st
     """
     if text is None:
         return None
-    tokens = text.replace(",", " ").split()
     try:
-        return [int(v) for v in tokens]
+        return _ints(text, option)
     except ValueError:
         pass
     try:
-        values = np.array([float(v) for v in tokens])
+        values = np.array([float(v) for v in text.replace(",", " ").split()])
     except ValueError:
         raise ValueError(
             f"{option} takes design indices ('2', '0,2,4') or eigen-strain pairs ('0.05,-0.05'), got '{text}'"

@@ -22,16 +22,14 @@ Resumable: each finished case is a JSON file in ``<out>/cases/``.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, pyplot, save_figure
-from inference.sampling import sample_posterior
-from inference.studies import SamplerSettings, spread_designs
+from inference.studies import SamplerSettings, sample_of, spread_designs
 from skinfem.io import StrainDataset
 from skinfem.outputs import write_text
 from surrogate.emulator import Emulator
@@ -101,22 +99,8 @@ def run_case(
     observations = from_dataset(data, case.material, list(case.designs), list(case.frames))
     if noise_sd > 0:
         observations = noisy(observations, noise_sd, 1000 * case.material + case.seed)
-    posterior = SkinPosterior(
-        emulator,
-        ObservedWeights.project(emulator, observations),
-        noise="known" if noise_sd > 0 else "halfcauchy",
-        gp_variance=settings.gp_variance,
-        emulator_error=settings.emulator_error,
-    )
-    samples = sample_posterior(
-        posterior,
-        chains=settings.chains,
-        warmup=settings.warmup,
-        draws=settings.draws,
-        seed=settings.seed + case.seed,
-        n_jobs=settings.n_jobs,
-        progress=False,
-    )
+    case_settings = replace(settings, seed=settings.seed + case.seed, progress=False)
+    samples = sample_of(emulator, observations, case_settings, noise="known" if noise_sd > 0 else "halfcauchy")
     draws = samples.draws[..., :5].reshape(-1, 5)
     return case_result(draws, data.params[case.material], emulator.param_bounds, int(samples.diverging.sum()))
 

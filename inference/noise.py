@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from skinfem.io import STATUS_OK, StrainDataset, create_dataset_like, write_simulation
+from skinfem.io import StrainDataset, copy_simulations, create_dataset_like
 from skinfem.outputs import write_atomically
 
 
@@ -78,7 +78,7 @@ def add_noise(data: StrainDataset, out: Path | str, length: float, level: float,
     amplitude = noise_amplitude(data, level)
     factor = correlation_factor(data.xy, length)
     rng = np.random.default_rng(seed)
-    n_mat, n_des, n_frames, _ = data.shape
+    _, n_des, n_frames, _ = data.shape
 
     def write(tmp: Path) -> None:
         import h5py
@@ -94,15 +94,6 @@ def add_noise(data: StrainDataset, out: Path | str, length: float, level: float,
                     "source": str(data.path),
                 }
             )
-        for i in range(n_mat):
-            clean = data.strain(i)
-            noisy = clean + noise_fields(factor, amplitude, (n_des, n_frames), rng)
-            for j in range(n_des):
-                if data.status[i, j] == STATUS_OK:
-                    write_simulation(
-                        tmp, i, j, noisy[j], STATUS_OK, "", int(data.newton_iterations[i, j]), float(data.seconds[i, j])
-                    )
-                elif data.status[i, j] != 0:
-                    write_simulation(tmp, i, j, None, int(data.status[i, j]), data.messages[i, j])
+        copy_simulations(data, tmp, lambda i: data.strain(i) + noise_fields(factor, amplitude, (n_des, n_frames), rng))
 
     return write_atomically(out, write)

@@ -15,7 +15,7 @@ import numpy as np
 from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, accuracy_plot, pyplot, save_figure
-from inference.sampling import PosteriorSummary, sample_posterior, write_outputs
+from inference.sampling import PosteriorSamples, PosteriorSummary, sample_posterior, write_outputs
 from skinfem.io import StrainDataset
 from skinfem.outputs import write_text
 from surrogate.emulator import Emulator
@@ -33,14 +33,10 @@ class SamplerSettings:
     emulator_error: bool = True
 
 
-def posterior_of(
-    emulator: Emulator,
-    observations: list[Observation],
-    settings: SamplerSettings,
-    out: Path | None,
-    noise: str = "halfcauchy",
-) -> PosteriorSummary:
-    """Sample one posterior; write its outputs to ``out`` if given. Returns the summary."""
+def sample_of(
+    emulator: Emulator, observations: list[Observation], settings: SamplerSettings, noise: str = "halfcauchy"
+) -> PosteriorSamples:
+    """The posterior of ``observations`` (noise "halfcauchy" or "known"), sampled with ``settings``."""
     posterior = SkinPosterior(
         emulator,
         ObservedWeights.project(emulator, observations),
@@ -48,7 +44,7 @@ def posterior_of(
         gp_variance=settings.gp_variance,
         emulator_error=settings.emulator_error,
     )
-    samples = sample_posterior(
+    return sample_posterior(
         posterior,
         chains=settings.chains,
         warmup=settings.warmup,
@@ -57,6 +53,17 @@ def posterior_of(
         n_jobs=settings.n_jobs,
         progress=settings.progress,
     )
+
+
+def posterior_of(
+    emulator: Emulator,
+    observations: list[Observation],
+    settings: SamplerSettings,
+    out: Path | None,
+    noise: str = "halfcauchy",
+) -> PosteriorSummary:
+    """Sample one posterior; write its outputs to ``out`` if given. Returns the summary."""
+    samples = sample_of(emulator, observations, settings, noise)
     sources = [o.source for o in observations]
     if out is None:
         return samples.summary(sources)

@@ -196,6 +196,24 @@ def write_simulation(
         f["status"][i_mat, i_des] = status
 
 
+def copy_simulations(data: StrainDataset, path: Path | str, strain_of) -> None:
+    """Record every finished simulation of ``data`` in the dataset at ``path`` (same materials and
+    designs, created beforehand): a converged one with ``strain_of(i_mat)`` (n_des, n_frames,
+    n_cells, 3) for its design, with its Newton iterations and seconds; a failed one as failed,
+    with its message. ``strain_of`` is called once per material, in order."""
+    n_mat, n_des = data.status.shape
+    for i in range(n_mat):
+        block = strain_of(i)
+        for j in range(n_des):
+            status = int(data.status[i, j])
+            if status == STATUS_OK:
+                write_simulation(
+                    path, i, j, block[j], status, "", int(data.newton_iterations[i, j]), float(data.seconds[i, j])
+                )
+            elif status != STATUS_NOT_RUN:
+                write_simulation(path, i, j, None, status, data.messages[i, j])
+
+
 @dataclass
 class StrainDataset:
     """A dataset read into memory (strain lazily: use :meth:`strain` to slice it)."""
