@@ -52,7 +52,7 @@ def main() -> None:
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
     from inference.sampling import sample_posterior
-    from skinfem.io import StrainDataset
+    from skinfem.io import StrainDataset, design_index
     from surrogate.emulator import Emulator
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -71,7 +71,7 @@ def main() -> None:
     torch.set_num_threads(1)
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     material = int(np.flatnonzero(data.split)[0])
-    mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
+    mixed = design_index(data.designs, (0.05, -0.05), data.path)
     observed = ObservedWeights.project(emulator, from_dataset(data, material, [mixed], [-1]))
     results = {
         "emulator": str(args.emulator),

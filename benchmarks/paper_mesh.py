@@ -28,8 +28,12 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from inference.studies import NoiseCase
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "paper_mesh"
@@ -86,31 +90,33 @@ def write_subset(data_path: Path, cells: np.ndarray, out: Path) -> Path:
 
 @dataclass(frozen=True)
 class StudyRun:
-    """One noise study's results (``noise_study.json``) under a label."""
+    """One noise study's results (``noise_study.json``, its cases by name) under a label."""
 
     label: str
     folder: Path
-    results: dict
+    results: dict[str, NoiseCase]
 
     @classmethod
     def read(cls, spec: str) -> StudyRun:
+        from inference.studies import read_noise_study
+
         label, _, folder = spec.partition("=")
         path = Path(folder) / "noise_study.json"
         if not label or not path.is_file():
             raise SystemExit(f"--run must be LABEL=FOLDER with FOLDER/noise_study.json, got '{spec}'")
-        return cls(label, Path(folder), json.loads(path.read_text()))
+        return cls(label, Path(folder), read_noise_study(path))
 
     def cell(self, case: str, name: str) -> str:
         """'width / coverage' of one parameter in one case, or '—' when the run lacks the case."""
         if case not in self.results:
             return "—"
-        study = self.results[case]["study"]
-        return f"{study['median_interval_share_of_prior'][name]:.2f} / {study['coverage_95'][name]:.0%}"
+        study = self.results[case].study
+        return f"{study.median_interval_share_of_prior[name]:.2f} / {study.coverage_95[name]:.0%}"
 
     def identified(self, case: str) -> str:
         if case not in self.results:
             return "—"
-        names = [SYMBOLS[n] for n in PARAMS if self.results[case]["study"]["identified"][n]]
+        names = [SYMBOLS[n] for n in PARAMS if self.results[case].study.identified[n]]
         return ", ".join(names) or "none"
 
 
@@ -214,7 +220,7 @@ def main() -> None:
     args.results.mkdir(parents=True, exist_ok=True)
     sources = {}
     for run in runs:
-        data = next(iter(run.results.values())).get("data")
+        data = next(iter(run.results.values())).data
         sources[run.label] = {
             "folder": str(run.folder),
             "data": data,

@@ -47,19 +47,18 @@ def _ints(text: str | None, option: str) -> list[int] | None:
         raise ValueError(f"{option} must be integers such as '2' or '0,2,4', got '{text}'") from None
 
 
-ALPHA_TOLERANCE = 1e-3  # |alpha given - alpha of a design| that still names it [-]
-
-
 def design_indices(text: str | None, designs: np.ndarray, path: Path, option: str = "--designs") -> list[int] | None:
     """Designs of a dataset named by index (``'7'``, ``'7,6,13'``) or by eigen-strain pairs
     (``'0.05,-0.05'`` or ``'0.05,-0.05,-0.05,0.05'``; a list holding a non-integer is read as
-    (alpha11, alpha22) pairs [-], each matched to the dataset's design within ``ALPHA_TOLERANCE``).
+    (alpha11, alpha22) pairs [-], each matched by :func:`skinfem.io.design_index`).
 
     Args:
         designs: (n_des, 2) the dataset's eigen-strains.
     Returns:
         Design indices (None if ``text`` is None); indices given as such are not range-checked here.
     """
+    from skinfem.io import design_index
+
     if text is None:
         return None
     try:
@@ -74,15 +73,10 @@ def design_indices(text: str | None, designs: np.ndarray, path: Path, option: st
         ) from None
     if len(values) == 0 or len(values) % 2:
         raise ValueError(f"{option} {text}: eigen-strains come in pairs alpha11,alpha22 (e.g. 0.05,-0.05)")
-    indices = []
-    for pair in values.reshape(-1, 2):
-        distance = np.abs(designs - pair).max(1)
-        j = int(np.argmin(distance))
-        if distance[j] > ALPHA_TOLERANCE:
-            known = ", ".join(f"{a:g},{b:g}" for a, b in designs)
-            raise ValueError(f"{option}: {path} has no design alpha = {pair[0]:g},{pair[1]:g} (its designs: {known})")
-        indices.append(j)
-    return indices
+    try:
+        return [design_index(designs, pair, path) for pair in values.reshape(-1, 2)]
+    except ValueError as exc:
+        raise ValueError(f"{option}: {exc}") from None
 
 
 def _one_design(text: str, designs: np.ndarray, path: Path) -> int:

@@ -118,6 +118,50 @@ def test_set_study(
     return result
 
 
+@dataclass(frozen=True)
+class StudyResult:
+    """study.json (written by :func:`test_set_study`) read back; per-parameter values by name
+    ("mu", "k1", "k2", "kappa", "theta").
+
+    Attributes:
+        designs, frames, label: the observation setup (its "setup"): design and frame indices
+            (None: every design, the last frame) and its name.
+        materials: the test materials' indices.
+        coverage_95: share of the materials whose 95 % interval covers the truth.
+        median_interval_share_of_prior: median width of the 95 % interval / prior range.
+        identified: coverage_95 >= 0.8 and median_interval_share_of_prior < 0.5.
+        max_r_hat: the largest R-hat over the materials and parameters.
+    """
+
+    designs: list[int] | None
+    frames: list[int] | None
+    label: str
+    materials: list[int]
+    coverage_95: dict[str, float]
+    median_interval_share_of_prior: dict[str, float]
+    identified: dict[str, bool]
+    max_r_hat: float
+
+    @classmethod
+    def from_json(cls, d: dict) -> StudyResult:
+        setup = d["setup"]
+        return cls(
+            designs=setup["designs"],
+            frames=setup["frames"],
+            label=setup["label"],
+            materials=d["materials"],
+            coverage_95=d["coverage_95"],
+            median_interval_share_of_prior=d["median_interval_share_of_prior"],
+            identified=d["identified"],
+            max_r_hat=d["max_r_hat"],
+        )
+
+
+def read_study(path: Path | str) -> StudyResult:
+    """A study.json that :func:`test_set_study` wrote."""
+    return StudyResult.from_json(json.loads(Path(path).read_text()))
+
+
 def spread_designs(designs: np.ndarray, first: int, n: int) -> list[int]:
     """``first`` and n - 1 more design indices, each the farthest (in alpha) from those chosen.
 
@@ -243,6 +287,34 @@ def noise_study(
     )
     write_noise_report(results, out)
     return results
+
+
+@dataclass(frozen=True)
+class NoiseCase:
+    """One case of noise_study.json (written by :func:`noise_study`).
+
+    Attributes:
+        data: the case's dataset (the clean one, or its noisy copy); None in files written
+            before it was recorded.
+        length_mm, level: the added noise's length scale [mm] and level (share of the training
+            data's max |strain|); None for the clean case.
+        study: the test-set study of the case.
+    """
+
+    data: str | None
+    length_mm: float | None
+    level: float | None
+    study: StudyResult
+
+    @classmethod
+    def from_json(cls, d: dict) -> NoiseCase:
+        noise = d["noise"] or {"length_mm": None, "level": None}
+        return cls(d.get("data"), noise["length_mm"], noise["level"], StudyResult.from_json(d["study"]))
+
+
+def read_noise_study(path: Path | str) -> dict[str, NoiseCase]:
+    """A noise_study.json that :func:`noise_study` wrote: its cases by name ("clean", "s1", ..., "l10")."""
+    return {name: NoiseCase.from_json(case) for name, case in json.loads(Path(path).read_text()).items()}
 
 
 def _case_emulator(data: StrainDataset, folder: Path, fit_options: dict) -> Emulator:

@@ -27,7 +27,7 @@ from inference.observations import from_dataset
 from inference.plots import corner_plot
 from inference.sampling import sample_posterior
 from inference.studies import spread_designs
-from skinfem.io import StrainDataset
+from skinfem.io import StrainDataset, design_index
 from surrogate.emulator import Emulator
 
 data = StrainDataset.open(os.environ.get("SKINID_DATA", "../out/demo/small.h5"))
@@ -35,7 +35,7 @@ emulator = Emulator.load(os.environ.get("SKINID_EMULATOR", "../out/demo/emulator
 out = Path(os.environ.get("SKINID_NOTEBOOK_OUT", "../out/notebooks")) / "03"
 out.mkdir(parents=True, exist_ok=True)
 material = int(np.flatnonzero(data.split)[0])
-mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
+mixed = design_index(data.designs, (0.05, -0.05), data.path)
 others = spread_designs(data.designs, mixed, 3)[1:]  # the two designs farthest from it and each other
 print("material", material, "true", dict(zip(("mu", "k1", "k2", "kappa", "theta"), data.params[material])))
 

@@ -19,7 +19,6 @@
 # Needs the small sweep's emulator (`make demo`, or `SKINID_EMULATOR`).
 
 # %%
-import json
 import os
 import shutil
 import subprocess
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.criticism import NoiseModel
+from inference.criticism.report import read_report
 from inference.synthetic import synthetic_measurements
 from skinfem.config import config_from_toml
 from skinfem.effects import EFFECTS, prestretch_log_strain
@@ -112,7 +112,7 @@ cmd = skinid + [
 run = subprocess.run(([mpirun, "-n", "2"] if mpirun else []) + cmd, capture_output=True, text=True)
 print(run.stdout[-3000:] or run.stderr[-3000:])
 run.check_returncode()
-report = json.loads((out / "report" / "report.json").read_text())
+report = read_report(out / "report" / "report.json")
 
 # %% [markdown]
 # ## 1. Compare
@@ -121,8 +121,11 @@ report = json.loads((out / "report" / "report.json").read_text())
 # ![baseline residual](../out/notebooks/05/report/residual_baseline_obs1.png)
 
 # %%
-base = report["versions"][0]["metrics"]
-print({k: base[k] for k in ("rmse", "noise_rms", "chi2_per_dof", "ppc_p", "moran_z", "structured")})
+base = report.versions[0].metrics
+print(
+    f"RMSE {base.rmse:.3g} (noise {base.noise_rms:.3g}), chi2/dof {base.chi2_per_dof:.2f}, PPC p {base.ppc_p:.3f}, "
+    f"Moran z {base.moran_z:.1f}, structured: {base.structured}"
+)
 
 # %% [markdown]
 # ## 2. Where: the membrane corners and edges
@@ -130,8 +133,8 @@ print({k: base[k] for k in ("rmse", "noise_rms", "chi2_per_dof", "ppc_p", "moran
 # ![regions](../out/notebooks/05/report/regions.png)
 
 # %%
-for r in report["regions"]:
-    print(f"{r['region']:>35}: {r['rms_sigma']:.2f} sigma")
+for r in report.diagnosis.regions:
+    print(f"{r.region:>35}: {r.rms_sigma:.2f} sigma")
 
 # %% [markdown]
 # ## 3. Which effect: ranked by ΔBIC, confirmed by a fit
@@ -139,12 +142,12 @@ for r in report["regions"]:
 # ![candidates](../out/notebooks/05/report/candidates.png)
 
 # %%
-for c in report["candidates"]:
+for c in report.diagnosis.candidates:
     print(
-        f"{c['effect']:>17}: dBIC {c['delta_bic']:+9.1f}, share {c['share_explained']:.0%}, "
-        f"confounding {c['confounding']:.0%}, explains: {c['explains']}"
+        f"{c.effect:>17}: dBIC {c.delta_bic:+9.1f}, share {c.share_explained:.0%}, "
+        f"confounding {c.confounding:.0%}, explains: {c.explains}"
     )
-print("\n" + report["verdict"])
+print("\n" + report.diagnosis.verdict)
 
 # %% [markdown]
 # ## 4–5. Add it and watch the error fall
@@ -152,18 +155,15 @@ print("\n" + report["verdict"])
 # ![error falls](../out/notebooks/05/report/error_falls.png)
 
 # %%
-for v in report["versions"]:
-    m = v["metrics"]
+for v in report.versions:
+    m = v.metrics
     print(
-        f"{v['label']:>24}: RMSE {m['rmse']:.2e} (noise {m['noise_rms']:.1e}), chi2/dof {m['chi2_per_dof']:.2f}, "
-        f"consistent with noise: {not m['structured']}"
+        f"{v.label:>24}: RMSE {m.rmse:.2e} (noise {m.noise_rms:.1e}), chi2/dof {m.chi2_per_dof:.2f}, "
+        f"consistent with noise: {not m.structured}"
     )
-final = report["versions"][-1]["estimates"]
+baseline, final = report.versions[0].estimates, report.versions[-1].estimates
 print("skin parameters, truth vs baseline vs + pre_stretch:")
 for i, n in enumerate(("mu", "k1", "k2", "kappa", "theta")):
-    print(
-        f"{n:>6}: {truth.as_array()[i]:.4g}  {report['versions'][0]['estimates'][n]['value']:.4g}  "
-        f"{final[n]['value']:.4g} ± {final[n]['sd']:.2g}"
-    )
-assert report["candidates"][0]["effect"] == "pre_stretch"
-assert not report["versions"][-1]["metrics"]["structured"]
+    print(f"{n:>6}: {truth.as_array()[i]:.4g}  {baseline[n].value:.4g}  {final[n].value:.4g} ± {final[n].sd:.2g}")
+assert report.diagnosis.candidates[0].effect == "pre_stretch"
+assert not report.versions[-1].metrics.structured

@@ -10,16 +10,19 @@ material with a hidden skin pre-stretch -> report.md with the figures.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from inference.sampling import PosteriorSummary
 from surrogate.validation import ValidationReport
+
+if TYPE_CHECKING:
+    from inference.criticism.report import ReportFile
 
 BIN = Path(sys.executable).parent
 
@@ -73,10 +76,11 @@ def run_parallel(*args: str) -> None:
         run(*args)
 
 
-def hidden_prestretch_check(out: Path, emu: Path, truth: np.ndarray) -> dict:
+def hidden_prestretch_check(out: Path, emu: Path, truth: np.ndarray) -> ReportFile:
     """Synthetic measurements of material ``truth`` with a hidden pre-stretch, and their check
-    (resumed if a killed run left FE runs); returns report.json."""
+    (resumed if a killed run left FE runs); returns its report.json."""
     from inference.criticism import NoiseModel
+    from inference.criticism.report import read_report
     from inference.synthetic import synthetic_measurements
     from skinfem.config import load_config
     from skinfem.effects import prestretch_log_strain
@@ -116,7 +120,7 @@ def hidden_prestretch_check(out: Path, emu: Path, truth: np.ndarray) -> dict:
             "--no-discretisation",
         ]  # data from the checked mesh: its model is exact
         run_parallel(*cmd, *(["--resume"] if check.exists() else []))  # a killed check: reuse its FE runs
-    return json.loads((check / "report.json").read_text())
+    return read_report(check / "report.json")
 
 
 def main() -> None:
@@ -135,12 +139,12 @@ def main() -> None:
     if not (emu / "validation.json").exists():  # --force: replace an incomplete folder of an earlier run
         run("surrogate", "fit", "--data", str(data), "--out", str(emu), "--gp-fraction", "0.5", "--force")
 
-    from skinfem.io import StrainDataset
+    from skinfem.io import StrainDataset, design_index
     from surrogate.emulator import Emulator
 
     dataset, emulator = StrainDataset.open(data), Emulator.load(emu)
     material = int(np.flatnonzero(dataset.split)[0])
-    mixed = int(np.flatnonzero(np.all(np.isclose(dataset.designs, [0.05, -0.05]), axis=1))[0])
+    mixed = design_index(dataset.designs, (0.05, -0.05), dataset.path)
 
     step(f"3/5 posterior of held-out material {material} from the mixed design (0.05, -0.05)")
     if not (post / "summary.json").exists():
@@ -171,7 +175,7 @@ def main() -> None:
 
 
 def write_report(
-    out: Path, dataset, emulator, material: int, mixed: int, summary: PosteriorSummary, criticism: dict
+    out: Path, dataset, emulator, material: int, mixed: int, summary: PosteriorSummary, criticism: ReportFile
 ) -> None:
     """report.md with the strain maps, the posterior table and the criticism's verdict, and the
     README's overview figure."""
@@ -197,9 +201,9 @@ def write_report(
     )
     val = ValidationReport.load(out / "emulator" / "validation.json").components
     versions = "\n".join(
-        f"| {v['label']} | {v['metrics']['rmse']:.2e} | {v['metrics']['chi2_per_dof']:.2f} | "
-        f"{v['metrics']['ppc_p']:.3f} | {'no' if v['metrics']['structured'] else 'yes'} |"
-        for v in criticism["versions"]
+        f"| {v.label} | {v.metrics.rmse:.2e} | {v.metrics.chi2_per_dof:.2f} | "
+        f"{v.metrics.ppc_p:.3f} | {'no' if v.metrics.structured else 'yes'} |"
+        for v in criticism.versions
     )
     (out / "report.md").write_text(
         REPORT.format(
@@ -210,7 +214,7 @@ def write_report(
             r2_yy=", ".join(f"{v:.4f}" for v in val["yy"].r2_per_pc),
             material=material,
             rows=rows,
-            verdict=criticism["verdict"],
+            verdict=criticism.diagnosis.verdict,
             versions=versions,
         )
     )

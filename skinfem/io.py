@@ -313,6 +313,27 @@ class StrainDataset:
         return data
 
 
+ALPHA_TOLERANCE = 1e-3  # |alpha given - alpha of a design| that still names it [-]
+
+
+def design_index(designs: np.ndarray, alpha: tuple[float, float] | np.ndarray, dataset: Path | str) -> int:
+    """The index of the design with eigen-strains ``alpha`` = (alpha11, alpha22) [-], each
+    matched within ``ALPHA_TOLERANCE`` (e.g. the "mixed" design (0.05, -0.05)).
+
+    Args:
+        designs: (n_des, 2) a dataset's eigen-strains (:attr:`StrainDataset.designs`).
+        dataset: the dataset's path, named in the error.
+    Raises:
+        ValueError: no design has these eigen-strains (the message lists the dataset's).
+    """
+    distance = np.abs(np.asarray(designs) - np.asarray(alpha, dtype=float)).max(1)
+    j = int(np.argmin(distance))
+    if distance[j] > ALPHA_TOLERANCE:
+        known = ", ".join(f"{a:g},{b:g}" for a, b in designs)
+        raise ValueError(f"{dataset} has no design alpha = {alpha[0]:g},{alpha[1]:g} (its designs: {known})")
+    return j
+
+
 def dataset_summary(data: StrainDataset) -> str:
     """Human-readable summary: sizes, status counts, split, strain ranges, configuration."""
     n_mat, n_des, n_frames, n_cells = data.shape

@@ -10,12 +10,11 @@ error it estimates with a uniformly refined Q1 mesh: neither is the data's discr
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
 from inference.criticism import NoiseModel
+from inference.criticism.report import read_report
 from skinfem.params import SkinParams
 from tests.cli_helpers import MPIRUN, skinid
 
@@ -76,19 +75,18 @@ def test_no_false_alarm_on_another_discretisation(small_config, mesh_dir, tmp_pa
         ranks=2,
     )
     assert res.returncode == 0, res.stderr[-3000:]
-    report = json.loads((tmp_path / "report" / "report.json").read_text())
-    disc = report["discretisation"]
-    assert disc["sigma"] > 2 and not disc["resolved"]
-    assert "exceeds the noise" in report["verdict"] and "mesh.h_edge <=" in report["verdict"]
-    assert not any(c["explains"] for c in report["candidates"])
+    report = read_report(tmp_path / "report" / "report.json")
+    disc, verdict = report.discretisation, report.diagnosis.verdict
+    assert disc.sigma > 2 and not disc.resolved
+    assert "exceeds the noise" in verdict and "mesh.h_edge <=" in verdict
+    assert not any(c.explains for c in report.diagnosis.candidates)
     # with the correction's amplitude fitted (a = 1.16 here) the residual is no longer read as
     # understated noise: it stays structured, and the verdict blames the mesh, not physics
     assert (
-        "no missing effect is needed" in report["verdict"]
-        or "this structure may be the mesh's: rerun on a finer mesh" in report["verdict"]
+        "no missing effect is needed" in verdict or "this structure may be the mesh's: rerun on a finer mesh" in verdict
     )
-    assert "Most likely missing" not in report["verdict"]
-    assert report["failed_runs"] == []
+    assert "Most likely missing" not in verdict
+    assert report.failed_runs == []
 
 
 @pytest.mark.slow
@@ -129,10 +127,10 @@ def test_a_defect_outside_the_registry_is_located_not_attributed(small_config, m
         ranks=2,
     )
     assert res.returncode == 0, res.stderr[-3000:]
-    report = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert "No candidate explains the residual" in report["verdict"]
-    assert not any(c["explains"] for c in report["candidates"])
-    spot = report["hotspot"]
+    report = read_report(tmp_path / "report" / "report.json")
+    assert "No candidate explains the residual" in report.diagnosis.verdict
+    assert not any(c.explains for c in report.diagnosis.candidates)
+    spot = report.diagnosis.hotspot
     # the verdict's disc ("peaking within <radius> mm of (x, y)") overlaps the inclusion
-    assert np.hypot(spot["x"] - centre[0], spot["y"] - centre[1]) < 3.5 + spot["radius"], spot
-    assert "stated noise is inconsistent" not in report["verdict"]  # a defect is not noise
+    assert np.hypot(spot.x - centre[0], spot.y - centre[1]) < 3.5 + spot.radius, spot
+    assert "stated noise is inconsistent" not in report.diagnosis.verdict  # a defect is not noise

@@ -20,7 +20,7 @@ from inference.observations import (
 )
 from inference.sampling import PosteriorSummary, _nuts_kernel, laplace_inverse_mass, sample_posterior
 from inference.studies import spread_designs
-from skinfem.io import StrainDataset
+from skinfem.io import StrainDataset, design_index
 from surrogate.emulator import Emulator
 from tests.cli_helpers import skinid
 
@@ -222,7 +222,7 @@ def _held_out_summary(emulator: Emulator, data: StrainDataset, out: Path) -> Pos
     from inference.sampling import write_outputs
 
     material = int(np.flatnonzero(data.split)[0])
-    mixed = int(np.flatnonzero(np.all(np.isclose(data.designs, [0.05, -0.05]), axis=1))[0])
+    mixed = design_index(data.designs, (0.05, -0.05), data.path)
     obs = from_dataset(data, material, designs=[mixed], frames=[-1])
     post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance="mode")
     samples = sample_posterior(post, chains=4, warmup=300, draws=400, seed=0, n_jobs=2, progress=False)

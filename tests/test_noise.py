@@ -59,9 +59,10 @@ def test_noisy_dataset(small_dataset, tmp_path):
 def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
     """One noise case next to the clean data: noise lowers the variance the leading PCs explain
     (the paper's Fig. 4) and the report has its tables and figures."""
-    from inference.studies import SamplerSettings, noise_study
+    from inference.studies import SamplerSettings, noise_study, read_noise_study
 
     data = StrainDataset.open(small_dataset)
+    material = int(np.flatnonzero(data.split)[0])
     settings = SamplerSettings(chains=2, warmup=100, draws=100, n_jobs=2, gp_variance="mode", progress=False)
     results = noise_study(
         data,
@@ -70,7 +71,7 @@ def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
         settings=settings,
         lengths=(1.0,),
         levels=(0.05,),
-        materials=[int(np.flatnonzero(data.split)[0])],
+        materials=[material],
         fit_options={"gp_fraction": 0.3, "restarts": 0},
     )
     assert set(results) == {"clean", "m5"}
@@ -80,3 +81,7 @@ def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
     assert "| m5 |" in report and "Paper (noise)" in report
     for name in ("explained_variance.png", "sensitivity.png", "noise_study.json", "cases/m5/posteriors/accuracy.png"):
         assert (tmp_path / name).exists(), name
+    cases = read_noise_study(tmp_path / "noise_study.json")
+    assert (cases["clean"].level, cases["m5"].length_mm, cases["m5"].level) == (None, 1.0, 0.05)
+    assert cases["m5"].data == str(tmp_path / "cases" / "m5" / "data.h5")
+    assert cases["m5"].study.designs == [2] and cases["m5"].study.materials == [material]

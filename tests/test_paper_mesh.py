@@ -76,11 +76,15 @@ def test_the_side_by_side_table_has_a_row_per_case_and_run(paper_mesh, tmp_path)
     def study(width: float, covered: float, identified: bool) -> dict:
         names = paper_mesh.PARAMS
         return {
+            "noise": None,
             "study": {
-                "median_interval_share_of_prior": dict.fromkeys(names, width),
+                "setup": {"designs": [0], "frames": [-1], "label": "design 0"},
+                "materials": [1, 2],
                 "coverage_95": dict.fromkeys(names, covered),
+                "median_interval_share_of_prior": dict.fromkeys(names, width),
                 "identified": dict.fromkeys(names, identified),
-            }
+                "max_r_hat": 1.01,
+            },
         }
 
     for label, results in (

@@ -291,7 +291,8 @@ def test_infer_prints_the_summary_as_before(capsys, known):
 
 
 def test_test_set_study_resumes_from_summary_files(tmp_path, monkeypatch):
-    """Finished materials are read back (PosteriorSummary.load), not sampled again."""
+    """Finished materials are read back (PosteriorSummary.load), not sampled again; study.json
+    holds what the study returns and reads back (read_study)."""
     import inference.studies as studies
 
     summaries = {i: fake_samples().summary([f"material {i}"]) for i in (3, 5)}
@@ -302,12 +303,14 @@ def test_test_set_study_resumes_from_summary_files(tmp_path, monkeypatch):
     result = studies.test_set_study(
         SimpleNamespace(param_bounds=BOUNDS), None, [7], [-1], studies.SamplerSettings(), tmp_path, materials=[3, 5]
     )
-    mu = [s.parameters["mu"] for s in summaries.values()]
-    assert result["coverage_95"]["mu"] == np.mean([p.covered for p in mu])
-    assert result["median_interval_share_of_prior"]["mu"] == np.median([p.interval_share_of_prior for p in mu])
-    assert result["max_r_hat"] == max(s.parameters[n].r_hat for s in summaries.values() for n in NAMES[:5])
     assert (tmp_path / "accuracy.png").read_bytes()[:4] == b"\x89PNG"
     assert json.loads((tmp_path / "study.json").read_text()) == result
+    study = studies.read_study(tmp_path / "study.json")
+    mu = [s.parameters["mu"] for s in summaries.values()]
+    assert (study.designs, study.frames, study.materials) == ([7], [-1], [3, 5])
+    assert study.coverage_95["mu"] == np.mean([p.covered for p in mu])
+    assert study.median_interval_share_of_prior["mu"] == np.median([p.interval_share_of_prior for p in mu])
+    assert study.max_r_hat == max(s.parameters[n].r_hat for s in summaries.values() for n in NAMES[:5])
 
 
 def test_write_outputs_returns_what_summary_json_holds(tmp_path, monkeypatch):
