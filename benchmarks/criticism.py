@@ -30,12 +30,17 @@ after adding it, seconds and FE runs to benchmarks/results/criticism.json. Recor
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from mpi4py import MPI
+
+if TYPE_CHECKING:
+    from inference.criticism.report import ReportDiagnosis, ReportFile, ReportVersion
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "criticism.json"
@@ -131,22 +136,23 @@ def box_centre(config: str) -> list[float]:
     return load_config(config).sweep.box.mean(axis=1).tolist()
 
 
-def verdict_class(diagnosis: dict, structured: bool) -> str:
+def verdict_class(diagnosis: ReportDiagnosis, structured: bool) -> str:
     """The effect that explains the residual, or "no missing effect" / "none explains"."""
-    best = next((c["effect"] for c in diagnosis["candidates"] if c["explains"]), None)
+    best = next((c.effect for c in diagnosis.candidates if c.explains), None)
     if best is not None:
         return best
     return "none explains" if structured else "no missing effect"
 
 
-def baseline_verdict(report: dict) -> str:
-    return verdict_class(report, report["versions"][0]["metrics"]["structured"])
+def baseline_verdict(report: ReportFile) -> str:
+    return verdict_class(report.diagnosis, report.versions[0].metrics.structured)
 
 
-def check(files, folder: Path, add: list[str], args) -> tuple[dict, float]:
+def check(files, folder: Path, add: list[str], args) -> tuple[ReportFile | None, float]:
     """One ``skinid check`` into ``folder/report`` (its FE runs kept for the next round); returns
-    (report.json on rank 0 or {} , seconds)."""
+    (its report.json on rank 0, else None; seconds)."""
     from inference.__main__ import main as skinid
+    from inference.criticism.report import read_report
 
     given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
     start = time.perf_counter()
@@ -180,15 +186,15 @@ def check(files, folder: Path, add: list[str], args) -> tuple[dict, float]:
     )
     seconds = time.perf_counter() - start
     if MPI.COMM_WORLD.rank or code:
-        return {}, seconds
-    return json.loads((folder / "report" / "report.json").read_text()), seconds
+        return None, seconds
+    return read_report(folder / "report" / "report.json"), seconds
 
 
-def rounds(files, folder: Path, case: str, args) -> tuple[list[str], list[dict], float]:
+def rounds(files, folder: Path, case: str, args) -> tuple[list[str], list[ReportFile | None], float]:
     """The checks of one case: a single effect is added in the same check (its RMSE after adding
     it is measured); two effects take successive rounds: the first check's named effect, if it
     is a true one, is added in a second check, whose next round should name the other.
-    Returns (verdicts, reports, seconds); reports are {} on ranks other than 0."""
+    Returns (verdicts, reports, seconds); reports are None on ranks other than 0."""
     true = true_effects(case)
     if len(true) < 2:
         report, seconds = check(files, folder, true, args)
@@ -198,10 +204,13 @@ def rounds(files, folder: Path, case: str, args) -> tuple[list[str], list[dict],
     if first not in true:
         return [first], [report], seconds
     second_report, more = check(files, folder, [first], args)
-    second = second_report and verdict_class(
-        second_report["next_round"], second_report["versions"][-1]["metrics"]["structured"]
-    )
+    second = second_report and verdict_class(second_report.next_round, second_report.versions[-1].metrics.structured)
     return [first, second], [report, second_report], seconds + more
+
+
+def estimates_json(version: ReportVersion) -> dict[str, dict[str, float]]:
+    """A version's estimates as report.json has them: {parameter: {"value", "sd"}}."""
+    return {name: dataclasses.asdict(e) for name, e in version.estimates.items()}
 
 
 def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
@@ -218,37 +227,42 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
         return {}
     first, last = reports[0], reports[-1]
     true = true_effects(case)
-    effects = [c["effect"] for c in first["candidates"]]
+    effects = [c.effect for c in first.diagnosis.candidates]
     ranks = [effects.index(e) + 1 for e in true if e in effects]
-    spot = first["hotspot"]
+    spot = first.diagnosis.hotspot
+    baseline = first.versions[0]
+    final = last.versions[-1] if len(last.versions) > 1 else None  # with the true effect added
     row = {
         "case": case,
         "seed": seed,
         "verdict": ", then ".join(verdicts),
         "rank_of_true_effect": min(ranks) if ranks else None,
-        "rmse_baseline": first["versions"][0]["metrics"]["rmse"],
-        "added": [v["label"] for v in last["versions"][1:]],
-        "rmse_with_true_effect": last["versions"][-1]["metrics"]["rmse"] if len(last["versions"]) > 1 else None,
-        "noise_rms": first["versions"][0]["metrics"]["noise_rms"],
-        "discretisation_sigma": first["discretisation"]["sigma"],
-        "discretisation_amplitude": first["discretisation"]["amplitude"],
-        "hotspot": spot,
+        "rmse_baseline": baseline.metrics.rmse,
+        "added": [v.label for v in last.versions[1:]],
+        "rmse_with_true_effect": None if final is None else final.metrics.rmse,
+        "noise_rms": baseline.metrics.noise_rms,
+        "discretisation_sigma": first.discretisation.sigma,
+        "carried_sigma": first.discretisation.remaining_sigma,
+        "discretisation_amplitude": first.discretisation.amplitude,
+        "hotspot": dataclasses.asdict(spot),
         "hotspot_to_inclusion_mm": (
-            float(np.hypot(spot["x"] - INCLUSION["centre"][0], spot["y"] - INCLUSION["centre"][1]))
+            float(np.hypot(spot.x - INCLUSION["centre"][0], spot.y - INCLUSION["centre"][1]))
             if case == "inclusion"
             else None
         ),
-        "failed_runs": sum(len(r["failed_runs"]) for r in reports),
+        "failed_runs": sum(len(r.failed_runs) for r in reports),
         "seconds": seconds,
         "fe_runs": sum(
-            r["timings"][k]
+            r.timings.compare_fe_runs
+            + r.timings.diagnose_fe_runs
+            + r.timings.add_fe_runs
+            + r.timings.next_round_fe_runs
             for r in reports
-            for k in ("compare_fe_runs", "diagnose_fe_runs", "add_fe_runs", "next_round_fe_runs")
         ),
-        "fe_runs_continued": first["timings"]["fe_runs_continued"],
-        "refined_seconds": first["timings"]["refined_s"],
-        "estimates_baseline": first["versions"][0]["estimates"],
-        "estimates_with_true_effect": last["versions"][-1]["estimates"] if len(last["versions"]) > 1 else None,
+        "fe_runs_continued": first.timings.fe_runs_continued,
+        "refined_seconds": first.timings.refined_s,
+        "estimates_baseline": estimates_json(baseline),
+        "estimates_with_true_effect": None if final is None else estimates_json(final),
     }
     (folder / "row.json").write_text(json.dumps(row, indent=2) + "\n")
     return row

@@ -3,14 +3,22 @@
 
 from __future__ import annotations
 
-import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from mpi4py import MPI
 
-from inference.criticism import Data, NoiseModel, calibrate, diagnose, residual_metrics
+from inference.criticism import Data, NoiseModel, calibrate, diagnose, rank_regions, residual_metrics
 from inference.criticism.diagnosis import score_candidates, signatures
+from inference.criticism.report import (
+    ReportDiagnosis,
+    ReportDiscretisation,
+    ReportFailedRun,
+    ReportVersion,
+    read_report,
+    write_report,
+)
 from inference.forward import ForwardModel, TaylorForward, parameter_space
 from skinfem.effects import EFFECTS, prestretch_log_strain
 from skinfem.params import SkinParams
@@ -209,30 +217,31 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     )
     res = skinid(*command, ranks=2)
     assert res.returncode == 0, res.stderr[-3000:]
-    report = json.loads((tmp_path / "report" / "report.json").read_text())
-    base, final = report["versions"][0], report["versions"][-1]
-    assert base["metrics"]["structured"]
-    assert report["candidates"][0]["effect"] == "pre_stretch" and report["candidates"][0]["explains"]
-    assert not any(c["explains"] for c in report["candidates"][1:])
-    assert final["metrics"]["rmse"] <= 0.5 * base["metrics"]["rmse"]
-    assert not final["metrics"]["structured"]
-    assert final["metrics"]["rmse"] < 1.15 * final["metrics"]["noise_rms"]
+    report = read_report(tmp_path / "report" / "report.json")
+    base, final = report.versions[0], report.versions[-1]
+    candidates = report.diagnosis.candidates
+    assert base.metrics.structured
+    assert candidates[0].effect == "pre_stretch" and candidates[0].explains
+    assert not any(c.explains for c in candidates[1:])
+    assert final.metrics.rmse <= 0.5 * base.metrics.rmse
+    assert not final.metrics.structured
+    assert final.metrics.rmse < 1.15 * final.metrics.noise_rms
     bounds = small_config.sweep.box
     truth = (TRUTH.as_array() - bounds[:, 0]) / np.ptp(bounds, axis=1)
 
     def distance(version):
-        est = np.array([version["estimates"][n]["value"] for n in ("mu", "k1", "k2", "kappa", "theta")])
+        est = np.array([version.estimates[n].value for n in ("mu", "k1", "k2", "kappa", "theta")])
         return np.linalg.norm((est - bounds[:, 0]) / np.ptp(bounds, axis=1) - truth)
 
     assert distance(final) < 0.5 * distance(base)
     for name, value in PRESTRETCH.items():
-        e = final["estimates"][name]
-        assert abs(e["value"] - value) < 4 * e["sd"] + 0.005
-    assert "pre_stretch" in report["verdict"] and "--add pre_stretch" in report["verdict"]
+        e = final.estimates[name]
+        assert abs(e.value - value) < 4 * e.sd + 0.005
+    assert "pre_stretch" in report.diagnosis.verdict and "--add pre_stretch" in report.diagnosis.verdict
     # the next round, on the version with the pre-stretch: nothing more is missing
-    assert report["next_round"]["after"] == "baseline + pre_stretch"
-    assert "no missing effect is needed" in report["next_round"]["verdict"]
-    assert not any(c["explains"] for c in report["next_round"]["candidates"])
+    assert final.label == "baseline + pre_stretch"
+    assert "no missing effect is needed" in report.next_round.verdict
+    assert not any(c.explains for c in report.next_round.candidates)
     for png in (
         "regions.png",
         "candidates.png",
@@ -246,15 +255,15 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     # a rerun (as after a kill) reads every FE run from report/fe_runs and reaches the same result
     res = skinid(*command, "--resume", ranks=2)
     assert res.returncode == 0, res.stderr[-3000:]
-    again = json.loads((tmp_path / "report" / "report.json").read_text())
-    t = again["timings"]
-    assert t["compare_fe_runs"] == t["diagnose_fe_runs"] == t["add_fe_runs"] == t["next_round_fe_runs"] == 0
-    assert t["fe_runs_read_from_cache"] == sum(
-        report["timings"][k] for k in ("compare_fe_runs", "diagnose_fe_runs", "add_fe_runs", "next_round_fe_runs")
+    again = read_report(tmp_path / "report" / "report.json")
+    t, first = again.timings, report.timings
+    assert t.compare_fe_runs == t.diagnose_fe_runs == t.add_fe_runs == t.next_round_fe_runs == 0
+    assert t.fe_runs_read_from_cache == (
+        first.compare_fe_runs + first.diagnose_fe_runs + first.add_fe_runs + first.next_round_fe_runs
     )
-    for v_again, v in zip(again["versions"], report["versions"], strict=True):
-        assert v_again["metrics"] == v["metrics"] and v_again["estimates"] == v["estimates"]
-    assert again["candidates"] == report["candidates"]
+    for v_again, v in zip(again.versions, report.versions, strict=True):
+        assert v_again.metrics == v.metrics and v_again.estimates == v.estimates
+    assert again.diagnosis.candidates == report.diagnosis.candidates
 
 
 @pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
@@ -286,10 +295,11 @@ def test_a_prestretch_with_the_noises_autocorrelation_is_not_read_as_understated
         "--mesh-dir", mesh_dir, "--spacing", 2.0, "--no-discretisation", ranks=2,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
-    report = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert "stated noise is inconsistent" not in report["verdict"]
-    assert abs(report["versions"][0]["metrics"]["moran_z"]) < 3.0  # autocorrelation alone: noise-like
-    assert report["candidates"][0]["effect"] == "pre_stretch" and report["candidates"][0]["explains"]
+    report = read_report(tmp_path / "report" / "report.json")
+    best = report.diagnosis.candidates[0]
+    assert "stated noise is inconsistent" not in report.diagnosis.verdict
+    assert abs(report.versions[0].metrics.moran_z) < 3.0  # autocorrelation alone: noise-like
+    assert best.effect == "pre_stretch" and best.explains
 
 
 def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
@@ -439,9 +449,10 @@ def test_the_hotspot_is_where_a_local_defect_sits(linear_world, grid_xy):
     assert f"({spot.x:.1f}, {spot.y:.1f}) mm" in d.text
 
 
-def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_world, grid_xy):
+def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_world, grid_xy, tmp_path):
     """(e) in the linear world: two effects at once; the first round names one, the round with
-    it added names the other, advises adding both, and with both the residual is noise."""
+    it added names the other, advises adding both, and with both the residual is noise. The
+    report of these rounds (a check with ``--add`` of the first) reads back as it was written."""
     from inference.criticism import extend
 
     truth = {"pre_stretch.eps_xx": 1.5, "muscle_stiffness.log_factor": -1.0}
@@ -466,3 +477,69 @@ def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_w
     assert f"--add {a} {b}" in second.text
     both = extend(linear_world, with_a, data, b, max_iterations=20)
     assert not diagnose(linear_world, both, data, [], half=10.0, band=4.0).metrics.structured
+    assert_report_reads_back(linear_check(linear_world, data, (cal, first), (with_a, second)), tmp_path)
+
+
+def linear_check(world, data, baseline, added):
+    """The result of a check in the linear world with one effect added: ``baseline`` and
+    ``added`` are (calibration, its diagnosis) of the two versions; one observation, a
+    discretisation estimate and one failed FE run."""
+    from inference.criticism import NoiseStatement
+    from inference.criticism.check import CheckResult, CheckTimings, Version
+    from inference.criticism.data import ModelError
+    from inference.criticism.discretisation import DiscretisationError
+    from inference.forward import FailedRun
+    from inference.observations import Measurement
+
+    (cal, diagnosis), (last, next_round) = baseline, added
+    disc = DiscretisationError(
+        mesh="linear", refined="none", h_membrane=2.0, h_edge=2.0, shift=np.zeros_like(data.fields),
+        order=1.0, relative=0.01, sigma=0.7, seconds=1.0, amplitude=1.2, amplitude_sd=0.3,
+    )  # fmt: skip
+    xy = data.xy[0]
+    return CheckResult(
+        data=data.with_model_error(ModelError(np.full_like(data.fields, 1e-5), 2.0, 0.5)),
+        observations=[Measurement(Path("m_0.csv"), np.array([0.05, -0.05]), 1.0, xy, data.fields[0], None)],
+        names=world.names,
+        bounds=world.bounds,
+        half=10.0,
+        band=4.0,
+        versions=[
+            Version(cal, diagnosis.metrics, diagnosis.regions),
+            Version(last, residual_metrics(last, data), rank_regions(last, data, 10.0, 4.0)),
+        ],
+        diagnosis=diagnosis,
+        next_round=next_round,
+        discretisation=disc,
+        noise_statement=NoiseStatement(True, 1.0, 0.0, 1.0),
+        failures=[FailedRun(np.arange(len(world.names), dtype=float), "diverged")],
+        start=world.null,
+        start_from="given start",
+        gauge_text="a grid",
+        fe_seconds_per_run=0.5,
+        timings=CheckTimings(compare_s=2.0, compare_fe_runs=4, diagnose_fe_runs=9, fe_runs_continued=3),
+    )
+
+
+def assert_report_reads_back(result, out):
+    """write_report's report.json, read back by read_report, holds the result's values."""
+    report = read_report(write_report(result, out).with_name("report.json"))
+    for read, d in ((report.diagnosis, result.diagnosis), (report.next_round, result.next_round)):
+        assert read == ReportDiagnosis(d.text, d.regions, d.hotspot, d.scores)
+    assert report.versions == [
+        ReportVersion(v.calibration.label, v.metrics, v.regions, v.calibration.estimates()) for v in result.versions
+    ]
+    disc = result.discretisation
+    assert report.discretisation == ReportDiscretisation(
+        disc.mesh,
+        disc.relative,
+        disc.sigma,
+        disc.order,
+        disc.remaining_sigma,
+        disc.resolved,
+        disc.suggested_h_edge(),
+        disc.amplitude,
+        disc.amplitude_sd,
+    )
+    assert report.failed_runs == [ReportFailedRun(dict(zip(result.names, range(len(result.names)))), "diverged")]
+    assert report.timings == result.timings

@@ -62,3 +62,50 @@ def test_a_correlated_model_error_carried_as_such_gives_calibrated_intervals():
             z2[length].append(((cal.x - truth) / cal.sd) ** 2)
     assert 0.6 < np.mean(z2[4.0]) < 1.5
     assert np.mean(z2[0.0]) > 3
+
+
+class ConvergingForward(ForwardModel):
+    """The exact field plus a discretisation error C h^p g (g a fixed smooth field, h the mesh's
+    edge cell size [mm]): what a mesh of order p gives near its asymptotic range."""
+
+    def __init__(self, config, exact: np.ndarray, g: np.ndarray, order: float):
+        self.config, self.exact, self.g, self.order = config, exact, g, order
+        self.names, self.bounds, self.null = ["x"], np.array([[-1.0, 1.0]]), np.zeros(1)
+
+    def evaluate_many(self, points):
+        from skinfem.mesh import edge_cell_size
+
+        return [self.exact + edge_cell_size(self.config.mesh) ** self.order * self.g for _ in points]
+
+
+def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
+    """Meshes converging at the order the check assumes for Q2 (1.5): from the check mesh and its
+    edge refinement alone, the estimate gives the check mesh's error, the refined (carried)
+    one, and the edge cell size whose error is half the noise -- each against the closed form."""
+    from inference.criticism.discretisation import estimate, observed_order, refined_config
+    from skinfem.config import load_config
+    from skinfem.mesh import edge_cell_size
+
+    config = load_config("small").with_changes(solver={"element_degree": 2}, mesh={"h_edge": 1.0})
+    p = observed_order(config)
+    rng = np.random.default_rng(3)
+    xy = np.stack([dic_points(18.0, 1.0, rng)])
+    masks = np.ones(xy.shape[:2], bool)
+    exact = np.stack([np.sin(xy[0] @ [0.2, 0.1])[:, None] * [1e-2, -5e-3, 2e-3]])
+    g = np.stack([np.cos(xy[0] @ [0.1, -0.3])[:, None] * [4e-3, 2e-3, 1e-3]])
+    data = Data(exact, masks, xy, NoiseModel(np.full(3, 1e-3), 2.0, 0.3))
+    coarse, fine = (ConvergingForward(c, exact, g, p) for c in (config, refined_config(config, "edge")))
+    disc = estimate(coarse, fine, np.zeros(1), data)
+
+    def error_rms(h: float) -> float:
+        return float(np.sqrt(np.mean((h**p * g) ** 2)))
+
+    h = edge_cell_size(config.mesh)
+    rms = float(np.sqrt(np.mean(exact**2)))
+    assert np.isclose(disc.relative, error_rms(h) / rms)
+    assert np.isclose(disc.remaining_relative, error_rms(h / 2) / rms)
+    assert np.isclose(disc.remaining_sigma, error_rms(h / 2) / 1e-3)
+    sd = disc.sd(xy, masks)  # the carried sd: the refined mesh's local error envelope
+    assert np.isclose(np.sqrt(np.mean(sd**2)), error_rms(h / 2), rtol=0.15)
+    assert np.isclose(error_rms(disc.suggested_h_edge()) / 1e-3, 0.5)
+    assert disc.resolved == (disc.remaining_sigma <= 0.5)

@@ -1,4 +1,5 @@
-"""The model-criticism report: report.md, report.json and its figures."""
+"""The model-criticism report: report.md, report.json and its figures; :func:`read_report` reads
+report.json back."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from inference.criticism.check import CheckResult
+from inference.criticism.calibration import Estimate
+from inference.criticism.check import CheckResult, CheckTimings
 from inference.criticism.diagnosis import CandidateScore
+from inference.criticism.metrics import Hotspot, RegionResidual, ResidualMetrics
 from inference.plots import field_grid, pyplot, save_figure
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.outputs import write_text
@@ -152,7 +155,8 @@ def discretisation_lines(result: CheckResult) -> list[str]:
         "| | RMS, share of the field | RMS [noise sd] |",
         "|---|---|---|",
         f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
-        f"| after the fitted correction (carried in the covariance) | {disc.relative / 2:.1%} | {disc.sigma / 2:.2f} |",
+        f"| after the fitted correction (carried in the covariance) | {disc.remaining_relative:.1%} "
+        f"| {disc.remaining_sigma:.2f} |",
         "",
         f"The carried error is correlated between points like the two meshes' difference: "
         f"{1 - result.data.model_error.nugget:.0%} of its variance over {result.data.model_error.length:.2g} mm, "
@@ -390,6 +394,8 @@ def report_dict(result: CheckResult) -> dict:
             "refined": result.discretisation.refined,
             "relative": result.discretisation.relative,
             "sigma": result.discretisation.sigma,
+            "order": result.discretisation.order,
+            "remaining_sigma": result.discretisation.remaining_sigma,
             "resolved": result.discretisation.resolved,
             "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
             "amplitude": result.discretisation.amplitude,
@@ -433,3 +439,129 @@ def report_dict(result: CheckResult) -> dict:
         "timings": dataclasses.asdict(result.timings),
         "fe_seconds_per_run": result.fe_seconds_per_run,
     }
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportDiagnosis:
+    """A diagnosis as report.json states it.
+
+    Attributes:
+        verdict: the verdict's paragraph.
+        regions: the regions ranked by their RMS standardised residual [sigma].
+        hotspot: the disc where the residual peaks.
+        candidates: the candidate effects' scores, best first.
+    """
+
+    verdict: str
+    regions: list[RegionResidual]
+    hotspot: Hotspot
+    candidates: list[CandidateScore]
+
+    @classmethod
+    def from_json(cls, d: dict) -> ReportDiagnosis:
+        return cls(
+            d["verdict"],
+            [RegionResidual(**g) for g in d["regions"]],
+            Hotspot(**d["hotspot"]),
+            [CandidateScore(**c) for c in d["candidates"]],
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportVersion:
+    """One model version of report.json.
+
+    Attributes:
+        label: "baseline", then "baseline + <effect>" per added effect.
+        metrics: its residual metrics (RMSE [log strain], chi^2/dof, PPC p, ...).
+        regions: the regions ranked by its RMS standardised residual [sigma].
+        estimates: the calibrated parameters (value ± Laplace sd, the parameter's unit) by name
+            ("mu", ..., "theta", "<effect>.<parameter>").
+    """
+
+    label: str
+    metrics: ResidualMetrics
+    regions: list[RegionResidual]
+    estimates: dict[str, Estimate]
+
+    @classmethod
+    def from_json(cls, d: dict) -> ReportVersion:
+        return cls(
+            d["label"],
+            ResidualMetrics(**d["metrics"]),
+            [RegionResidual(**g) for g in d["regions"]],
+            {name: Estimate(**e) for name, e in d["estimates"].items()},
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportDiscretisation:
+    """The check mesh's own error as report.json states it (see :class:`DiscretisationError`).
+
+    Attributes:
+        mesh: the check's mesh.
+        relative: RMS of its error / RMS of the measured field.
+        sigma: RMS of its error [noise sd].
+        order: the order of convergence the estimate assumes.
+        remaining_sigma: RMS of the corrected model's error, carried next to the noise [noise sd].
+        resolved: the corrected model's error is below half the noise.
+        suggested_h_edge_mm: the membrane-edge cell size [mm] whose error would be half the noise.
+        amplitude, amplitude_sd: the fitted multiple of the two meshes' shift and its Laplace sd.
+    """
+
+    mesh: str
+    relative: float
+    sigma: float
+    order: float
+    remaining_sigma: float
+    resolved: bool
+    suggested_h_edge_mm: float
+    amplitude: float | None
+    amplitude_sd: float | None
+
+    @classmethod
+    def from_json(cls, d: dict) -> ReportDiscretisation:
+        return cls(**{f.name: d[f.name] for f in dataclasses.fields(cls)})  # its other fields are not read
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportFailedRun:
+    """An FE run that did not converge: its parameter point by name and the solver's message."""
+
+    x: dict[str, float]
+    message: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportFile:
+    """report.json read back (:func:`read_report`): the fields its readers use.
+
+    Attributes:
+        diagnosis: of the baseline (the file's top-level verdict, regions, hotspot, candidates).
+        next_round: of the last version, what is still missing after the added effects (None
+            without ``--add``).
+        versions: the baseline, then one version per added effect.
+        discretisation: None if not estimated (``--no-discretisation``).
+        failed_runs: the FE runs that did not converge.
+        timings: wall seconds and FE runs of each phase.
+    """
+
+    diagnosis: ReportDiagnosis
+    next_round: ReportDiagnosis | None
+    versions: list[ReportVersion]
+    discretisation: ReportDiscretisation | None
+    failed_runs: list[ReportFailedRun]
+    timings: CheckTimings
+
+
+def read_report(path: Path | str) -> ReportFile:
+    """The report.json that :func:`write_report` wrote (from :func:`report_dict`)."""
+    d = json.loads(Path(path).read_text())
+    return ReportFile(
+        diagnosis=ReportDiagnosis.from_json(d),
+        next_round=None if d["next_round"] is None else ReportDiagnosis.from_json(d["next_round"]),
+        versions=[ReportVersion.from_json(v) for v in d["versions"]],
+        discretisation=None if d["discretisation"] is None else ReportDiscretisation.from_json(d["discretisation"]),
+        failed_runs=[ReportFailedRun(**f) for f in d["failed_runs"]],
+        timings=CheckTimings(**d["timings"]),
+    )
