@@ -160,11 +160,44 @@ def study_cases(folder: Path) -> dict[str, list]:
     return cases
 
 
+def noisy_truths(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(truths (n, 5), prior bounds (n, 5, 2)) of the distinct test materials of a noise study's
+    noisy cases, from their posteriors' ``summary.json``."""
+    from inference.sampling import PosteriorSummary
+
+    materials = {}
+    for path in folder.glob("cases/*/posteriors/material_*/summary.json"):
+        if path.parents[2].name != "clean":
+            summary = PosteriorSummary.load(path)
+            materials[path.parent.name] = (
+                [summary.parameters[n].true for n in PARAMS],
+                [summary.parameters[n].prior for n in PARAMS],
+            )
+    truths, bounds = zip(*materials.values())
+    return np.array(truths), np.array(bounds)
+
+
+def prior_alone(truths: np.ndarray, bounds: np.ndarray) -> list:
+    """What posteriors equal to the uniform prior (``bounds`` (n, 5, 2)) would cover for these
+    ``truths`` (n, 5): a :class:`inference.coverage.CaseResult` per material. With a handful of
+    materials and a prior-dominated parameter, the coverage of the central 50 % interval is the
+    share of the materials in the prior's central half."""
+    from inference.coverage import case_result
+
+    uniform = [np.linspace(b[:, 0], b[:, 1], 4001) for b in bounds]  # the prior's quantiles as draws
+    return [case_result(draws, t, b, 0) for draws, t, b in zip(uniform, truths, bounds)]
+
+
 def coverage_table(cases: dict[str, list]) -> tuple[str, dict]:
-    """Markdown table and JSON record of the 50 % / 95 % coverage per case and pooled over the noisy ones."""
-    pooled = [r for name, results in cases.items() if name != "clean" for r in results]
+    """Markdown table and JSON record of the 50 % / 95 % coverage per case, pooled over the noisy
+    ones, and (``cases["prior alone"]``, if given) of the prior itself for the same materials."""
+    pooled = [r for name, results in cases.items() if name not in ("clean", "prior alone") for r in results]
+    cases = {name: results for name, results in cases.items() if name != "prior alone"} | {
+        "all noisy cases": pooled,
+        **({"prior alone": cases["prior alone"]} if "prior alone" in cases else {}),
+    }
     rows, record = [], {}
-    for name, results in {**cases, "all noisy cases": pooled}.items():
+    for name, results in cases.items():
         if not results:
             continue
         c50 = np.mean([r.covered_50 for r in results], axis=0)
@@ -206,7 +239,7 @@ def main() -> None:
         from inference.coverage import rank_histograms
 
         cases = study_cases(args.study)
-        table, record = coverage_table(cases)
+        table, record = coverage_table({**cases, "prior alone": prior_alone(*noisy_truths(args.study))})
         args.results.mkdir(parents=True, exist_ok=True)
         (args.results / "coverage.json").write_text(json.dumps({"study": str(args.study), **record}, indent=1) + "\n")
         noisy = np.array([r.rank for name, results in cases.items() if name != "clean" for r in results])
