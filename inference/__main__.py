@@ -552,7 +552,7 @@ def _coverage(args, emulator, data) -> None:
             f"{name:>6}: 95 % intervals cover {e.coverage_95:.2f} (sd {e.binomial_sd_95:.2f}), "
             f"50 % intervals {e.coverage_50:.2f} (sd {e.binomial_sd_50:.2f})"
         )
-    print(f"{res.n_cases} cases; wrote {args.out}/coverage.json and ranks.png")
+    print(f"{res.n_cases} cases of {res.n_materials} materials (sd over materials); wrote {args.out}/coverage.json")
 
 
 def _noise_study(args, data) -> None:

@@ -39,11 +39,15 @@ def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
         )
         for h in hits
     ]
-    summary = summarise(results, "single", 3, 0.0, SamplerSettings())
+    summary = summarise(results, "single", 3, 0.0, SamplerSettings(), materials=list(range(50)))
     mu = summary.parameters["mu"]
-    assert summary.n_cases == 50
+    assert summary.n_cases == 50 and summary.n_materials == 50
     assert mu.coverage_50 == 0.9 and mu.binomial_sd_50 == pytest.approx(np.sqrt(0.9 * 0.1 / 50))
     assert mu.coverage_95 == 1.0 and not mu.meets_goal  # 50 % intervals holding 90 %: too wide
+    # the same 50 materials seen through 4 designs each: 200 cases, no more information
+    again = summarise(results * 4, "single", 3, 0.0, SamplerSettings(), materials=list(range(50)) * 4)
+    assert again.n_cases == 200 and again.n_materials == 50
+    assert again.parameters["mu"].binomial_sd_50 == pytest.approx(mu.binomial_sd_50)
 
 
 @pytest.mark.slow
