@@ -33,6 +33,7 @@ import argparse
 import dataclasses
 import json
 import time
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -268,6 +269,37 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     return row
 
 
+def markdown_table(rows: list[dict]) -> str:
+    """One line per case: verdicts, the true effect's rank, medians of RMSE (before / after adding
+    the true effect), the check mesh's own error and the carried part [noise sd], and seconds."""
+
+    def median(values) -> float | None:
+        values = [v for v in values if v is not None]
+        return float(np.median(values)) if values else None
+
+    def number(value, fmt: str) -> str:
+        return "—" if value is None else format(value, fmt)
+
+    lines = [
+        "| hidden effect | checks | verdicts | true effect ranked first | RMSE baseline | RMSE with the true "
+        "effect added | own error / carried [σ] | seconds |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for case in dict.fromkeys(row["case"] for row in rows):
+        mine = [row for row in rows if row["case"] == case]
+        verdicts = ", ".join(f"{v}: {n}" for v, n in Counter(row["verdict"] for row in mine).items())
+        ranks = [row["rank_of_true_effect"] for row in mine]
+        first = "—" if case in ("none", "inclusion") else f"{ranks.count(1)}/{len(mine)}"
+        rmse, added = median(r["rmse_baseline"] for r in mine), median(r["rmse_with_true_effect"] for r in mine)
+        own, carried = median(r["discretisation_sigma"] for r in mine), median(r.get("carried_sigma") for r in mine)
+        seconds = median(r["seconds"] for r in mine)
+        lines.append(
+            f"| {case} | {len(mine)} | {verdicts} | {first} | {number(rmse, '.2e')} | {number(added, '.2e')} "
+            f"| {number(own, '.1f')} / {number(carried, '.1f')} | {number(seconds, '.0f')} |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     """The benchmark's steps in order (options, cases by seed, the results file): longer than a screen on purpose."""
     import skinfem.model  # noqa: F401  (PETSc initialises collectively: import on every rank first)
@@ -336,8 +368,7 @@ def main() -> None:
             )
             + "\n"
         )
-        for case, verdicts in confusion.items():
-            print(f"{case:>17}: {verdicts}")
+        print(markdown_table(rows))
 
 
 if __name__ == "__main__":

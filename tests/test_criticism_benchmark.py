@@ -1,0 +1,45 @@
+"""benchmarks/criticism.py's confusion table from finished rows (no FE)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_benchmark():
+    spec = importlib.util.spec_from_file_location("criticism_bench", ROOT / "benchmarks" / "criticism.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["criticism_bench"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def row(case: str, verdict: str, rank, rmse: float, added, seconds: float) -> dict:
+    return dict(
+        case=case,
+        verdict=verdict,
+        rank_of_true_effect=rank,
+        rmse_baseline=rmse,
+        rmse_with_true_effect=added,
+        discretisation_sigma=4.0,
+        carried_sigma=1.5,
+        seconds=seconds,
+    )
+
+
+def test_the_table_counts_verdicts_and_takes_medians_per_case():
+    rows = [
+        row("none", "no missing effect", None, 1e-3, None, 600),
+        row("pre_stretch", "pre_stretch", 1, 2e-3, 1.0e-3, 1000),
+        row("pre_stretch", "no missing effect", 2, 4e-3, 1.2e-3, 1200),
+        row("pre_stretch", "pre_stretch", 1, 3e-3, 1.1e-3, 1100),
+    ]
+    lines = load_benchmark().markdown_table(rows).splitlines()
+    assert len(lines) == 4  # header, rule, two cases
+    assert lines[2] == "| none | 1 | no missing effect: 1 | — | 1.00e-03 | — | 4.0 / 1.5 | 600 |"
+    assert lines[3] == (
+        "| pre_stretch | 3 | pre_stretch: 2, no missing effect: 1 | 2/3 | 3.00e-03 | 1.10e-03 | 4.0 / 1.5 | 1100 |"
+    )
