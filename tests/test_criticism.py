@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -543,3 +544,8 @@ def assert_report_reads_back(result, out):
     )
     assert report.failed_runs == [ReportFailedRun(dict(zip(result.names, range(len(result.names)))), "diverged")]
     assert report.timings == result.timings
+    older = json.loads((out / "report.json").read_text())
+    del older["discretisation"]["order"]  # a report written before the field existed
+    (out / "older.json").write_text(json.dumps(older))
+    with pytest.raises(ValueError, match="not a report.json of this version of skinid.*rerun the check"):
+        read_report(out / "older.json")

@@ -555,8 +555,19 @@ class ReportFile:
 
 
 def read_report(path: Path | str) -> ReportFile:
-    """The report.json that :func:`write_report` wrote (from :func:`report_dict`)."""
+    """The report.json that :func:`write_report` wrote (from :func:`report_dict`).
+
+    Raises:
+        ValueError: the file lacks a field this version writes (an older report): rerun the check.
+    """
     d = json.loads(Path(path).read_text())
+    try:
+        return _report_file(d)
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{path} is not a report.json of this version of skinid ({exc!r}): rerun the check") from None
+
+
+def _report_file(d: dict) -> ReportFile:
     return ReportFile(
         diagnosis=ReportDiagnosis.from_json(d),
         next_round=None if d["next_round"] is None else ReportDiagnosis.from_json(d["next_round"]),
