@@ -188,16 +188,12 @@ def prior_alone(truths: np.ndarray, bounds: np.ndarray) -> list:
     return [case_result(draws, t, b, 0) for draws, t, b in zip(uniform, truths, bounds)]
 
 
-def coverage_table(cases: dict[str, list]) -> tuple[str, dict]:
+def coverage_table(cases: dict[str, list], prior: list | None = None) -> tuple[str, dict]:
     """Markdown table and JSON record of the 50 % / 95 % coverage per case, pooled over the noisy
-    ones, and (``cases["prior alone"]``, if given) of the prior itself for the same materials."""
-    pooled = [r for name, results in cases.items() if name not in ("clean", "prior alone") for r in results]
-    cases = {name: results for name, results in cases.items() if name != "prior alone"} | {
-        "all noisy cases": pooled,
-        **({"prior alone": cases["prior alone"]} if "prior alone" in cases else {}),
-    }
+    ones, and (``prior``: :func:`prior_alone`, if given) of the prior itself for the same materials."""
+    pooled = [r for name, results in cases.items() if name != "clean" for r in results]
     rows, record = [], {}
-    for name, results in cases.items():
+    for name, results in {**cases, "all noisy cases": pooled, "prior alone": prior or []}.items():
         if not results:
             continue
         c50 = np.mean([r.covered_50 for r in results], axis=0)
@@ -239,7 +235,7 @@ def main() -> None:
         from inference.coverage import rank_histograms
 
         cases = study_cases(args.study)
-        table, record = coverage_table({**cases, "prior alone": prior_alone(*noisy_truths(args.study))})
+        table, record = coverage_table(cases, prior_alone(*noisy_truths(args.study)))
         args.results.mkdir(parents=True, exist_ok=True)
         (args.results / "coverage.json").write_text(json.dumps({"study": str(args.study), **record}, indent=1) + "\n")
         noisy = np.array([r.rank for name, results in cases.items() if name != "clean" for r in results])

@@ -124,7 +124,7 @@ def test_posteriors_equal_to_the_prior_cover_the_materials_in_its_central_half(p
     50 % / 95 % intervals [0.25, 0.75] / [0.025, 0.975] for 1 / 2 of the 3 materials."""
     bounds = np.tile([[0.0, 2.0]], (3, 5, 1))
     truths = np.outer([0.5, 0.9, 0.99], np.full(5, 2.0))
-    _, record = paper_mesh.coverage_table({"s1": [], "prior alone": paper_mesh.prior_alone(truths, bounds)})
+    _, record = paper_mesh.coverage_table({"s1": []}, paper_mesh.prior_alone(truths, bounds))
     assert record["prior alone"]["n"] == 3
     assert record["prior alone"]["coverage_50"] == dict.fromkeys(paper_mesh.PARAMS, 0.333)
     assert record["prior alone"]["coverage_95"] == dict.fromkeys(paper_mesh.PARAMS, 0.667)
