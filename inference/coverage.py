@@ -134,16 +134,15 @@ def coverage_study(
 ) -> CoverageSummary:
     """Run (or resume) every case of ``setup``; write ``coverage.json`` and ``ranks.png``."""
     out = Path(out)
-    results = []
-    for case in cases_of(data, setup, n, materials, noise_seeds):
+    results, cases = [], cases_of(data, setup, n, materials, noise_seeds)
+    for case in cases:
         path = out / "cases" / f"{case.name}.json"
         if path.exists():
             results.append(CaseResult(**json.loads(path.read_text())))
             continue
         results.append(run_case(emulator, data, case, settings, noise_sd))
         write_text(path, json.dumps(asdict(results[-1])) + "\n")
-    materials = [case.material for case in cases_of(data, setup, n, materials, noise_seeds)]
-    summary = summarise(results, setup, n, noise_sd, settings, materials)
+    summary = summarise(results, setup, n, noise_sd, settings, [case.material for case in cases])
     write_text(out / "coverage.json", json.dumps(summary.to_json(), indent=2) + "\n")
     rank_histograms(
         np.array([r.rank for r in results]),
