@@ -1,14 +1,16 @@
 """Coverage of the posterior intervals on held-out materials, per observation setup and noise.
 
     python benchmarks/coverage.py --emulator EMU --data TEST.h5 [--setups single frames membranes]
-        [--noise-sd 0 0.002] [--emulator-error on off] [--store out/coverage]
+        [--noise-sd 0 0.002] [--emulator-error on off] [--store out/coverage] [--starts 1]
+        [--results benchmarks/results/coverage_fresh]
 
 For every setup x noise sd x error model, ``inference.coverage.coverage_study`` runs every case
 (test materials of TEST.h5 x starting designs; resumable in ``--store``); its summary (with the
-seconds per case) is written to benchmarks/results/coverage/<label>.json and its rank histograms
-to ranks_<label>.png there. Sampler: 2 chains x 500 draws after 300 warm-up in one process (run
-setups in parallel processes instead), the GP variance fixed at the mode (the default 4 x 1000
-exact-variance posterior is too slow for hundreds of cases on 2 cores).
+cases run by this call and their seconds per case, when it ran any) is written to
+<results>/<label>.json (default benchmarks/results/coverage/) and its rank histograms to
+ranks_<label>.png there. Sampler: 2 chains x 500 draws after 300 warm-up in one process (run
+setups or halves of ``--materials`` in parallel processes instead), the GP variance fixed at the
+mode (the default 4 x 1000 exact-variance posterior is too slow for hundreds of cases on 2 cores).
 """
 
 from __future__ import annotations
@@ -21,10 +23,10 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "coverage"
+TIMING = ("cases_run", "seconds_per_case")
 
 
 def main() -> None:
-    from inference.coverage import coverage_study
     from inference.studies import SamplerSettings
     from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
@@ -42,9 +44,11 @@ def main() -> None:
         nargs="+",
         help="only these test materials (a second process can share a study's cases)",
     )
+    parser.add_argument("--starts", type=int, help="starting designs per material (default: all; 1: independent cases)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the summaries and rank histograms")
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
-    RESULTS.mkdir(exist_ok=True)
+    args.results.mkdir(exist_ok=True)
     for error in args.emulator_error:
         settings = SamplerSettings(
             chains=2, warmup=300, draws=500, n_jobs=1, gp_variance="mode", progress=False, emulator_error=error == "on"
@@ -52,15 +56,36 @@ def main() -> None:
         for sd in args.noise_sd:
             for setup in args.setups:
                 label = f"{setup}_noise{sd:g}_error-{error}"
-                start = time.perf_counter()
-                summary = coverage_study(
-                    emulator, data, setup, settings, args.store / label, noise_sd=sd, materials=args.materials
-                )
-                seconds = (time.perf_counter() - start) / summary.n_cases
-                record = {**summary.to_json(), "seconds_per_case_this_run": seconds, "emulator": str(args.emulator)}
-                (RESULTS / f"{label}.json").write_text(json.dumps(record, indent=2) + "\n")
-                shutil.copy(args.store / label / "ranks.png", RESULTS / f"ranks_{label}.png")
+                summary = run_study(args, emulator, data, setup, settings, sd, label)
                 print(label, {n: (e.coverage_50, e.coverage_95) for n, e in summary.parameters.items()}, flush=True)
+
+
+def run_study(args, emulator, data, setup: str, settings, sd: float, label: str):
+    """One coverage study, written to ``<results>/<label>.json`` with the seconds per case of the
+    cases this call ran (a pass that only summarises keeps the previous file's timing)."""
+    from inference.coverage import coverage_study
+
+    cases = args.store / label / "cases"
+    done_before = len(list(cases.glob("*.json"))) if cases.exists() else 0
+    start = time.perf_counter()
+    summary = coverage_study(
+        emulator, data, setup, settings, args.store / label, noise_sd=sd, materials=args.materials, starts=args.starts
+    )
+    run = len(list(cases.glob("*.json"))) - done_before
+    timing = {"cases_run": run, "seconds_per_case": (time.perf_counter() - start) / run} if run else {}
+    previous = args.results / f"{label}.json"
+    if not run and previous.exists():
+        timing = {k: v for k, v in json.loads(previous.read_text()).items() if k in TIMING}
+    record = {
+        **summary.to_json(),
+        **timing,
+        "emulator": str(args.emulator),
+        "data": str(args.data),
+        "starts_per_material": args.starts,
+    }
+    previous.write_text(json.dumps(record, indent=2) + "\n")
+    shutil.copy(args.store / label / "ranks.png", args.results / f"ranks_{label}.png")
+    return summary
 
 
 if __name__ == "__main__":

@@ -331,6 +331,11 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         help="independent noise sd added and stated [strain] (0: noise-free, unknown noise)",
     )
     p.add_argument("--noise-seeds", type=int, default=1, help="noise draws per material and design")
+    p.add_argument(
+        "--starts",
+        type=int,
+        help="starting designs per material, rotating with the material (default: all; 1: independent cases)",
+    )
     p.add_argument("--materials", help="subset of materials (default: the test split)")
     add_output(p, "study directory", resumable=True)
     _add_sampler(p)
@@ -496,7 +501,7 @@ def cmd_study(args) -> None:
         _check_noise_study(args, n_des)
     designs = _setups_designs(args, data) if args.study == "setups" else None
     if args.study == "coverage":
-        _check_coverage(args, {"frames": n_frames, "membranes": n_des}.get(args.setup))
+        _check_coverage(args, {"frames": n_frames, "membranes": n_des}.get(args.setup), n_des)
     if args.force:  # the inputs are read and checked: start over
         remove_output(args.out)
     if args.study == "noise":
@@ -522,15 +527,18 @@ def _check_noise_study(args, n_designs: int) -> None:
         raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
 
 
-def _check_coverage(args, n_max: int | None) -> None:
+def _check_coverage(args, n_max: int | None, n_designs: int) -> None:
     """Refuse the options of ``study coverage`` that are out of range (n_max: the dataset's
-    designs for the membranes setup, its frames for the frames setup; None: --n is not used)."""
+    designs for the membranes setup, its frames for the frames setup; None: --n is not used;
+    n_designs: the dataset's designs)."""
     if n_max is not None and not 1 <= args.n <= n_max:
         raise ValueError(f"--n must be in [1, {n_max}] for the {args.setup} setup of {args.data}, got {args.n}")
     if not (math.isfinite(args.noise_sd) and args.noise_sd >= 0):
         raise ValueError(f"--noise-sd must be >= 0, got {args.noise_sd}")
     if args.noise_seeds < 1:
         raise ValueError(f"--noise-seeds must be >= 1, got {args.noise_seeds}")
+    if args.starts is not None and not 1 <= args.starts <= n_designs:
+        raise ValueError(f"--starts must be in [1, {n_designs}], got {args.starts}")
 
 
 def _coverage(args, emulator, data) -> None:
@@ -546,6 +554,7 @@ def _coverage(args, emulator, data) -> None:
         args.noise_sd,
         args.noise_seeds,
         _ints(args.materials, "--materials"),
+        args.starts,
     )
     for name, e in res.parameters.items():
         print(

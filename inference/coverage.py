@@ -68,15 +68,29 @@ class CaseResult:
 
 
 def cases_of(
-    data: StrainDataset, setup: str, n: int = 3, materials: list[int] | None = None, noise_seeds: int = 1
+    data: StrainDataset,
+    setup: str,
+    n: int = 3,
+    materials: list[int] | None = None,
+    noise_seeds: int = 1,
+    starts: int | None = None,
 ) -> list[CoverageCase]:
-    """Every (test material, starting design, noise seed) case of ``setup`` (see module doc)."""
+    """Every (test material, starting design, noise seed) case of ``setup`` (see module doc).
+
+    ``starts``: starting designs per material (default: all). Material i starts from designs
+    i, i + 1, ... (mod the number of designs), so every design is used about equally, a subset
+    of ``materials`` keeps its cases, and with ``starts=1`` every case has its own material:
+    independent cases."""
     if setup not in SETUPS:
         raise ValueError(f"setup must be one of {SETUPS}, got '{setup}'")
     materials = list(np.flatnonzero(data.split == 1)) if materials is None else materials
+    n_designs = len(data.designs)
+    starts = n_designs if starts is None else starts
+    if not 1 <= starts <= n_designs:
+        raise ValueError(f"starting designs per material must be in [1, {n_designs}], got {starts}")
     out = []
     for i in materials:
-        for j in range(len(data.designs)):
+        for j in sorted(int(j) for j in (np.arange(starts) + i) % n_designs):
             designs = tuple(spread_designs(data.designs, j, n)) if setup == "membranes" else (j,)
             frames = tuple(range(-n, 0)) if setup == "frames" else (-1,)
             out += [CoverageCase(int(i), designs, frames, s) for s in range(noise_seeds)]
@@ -131,10 +145,12 @@ def coverage_study(
     noise_sd: float = 0.0,
     noise_seeds: int = 1,
     materials: list[int] | None = None,
+    starts: int | None = None,
 ) -> CoverageSummary:
-    """Run (or resume) every case of ``setup``; write ``coverage.json`` and ``ranks.png``."""
+    """Run (or resume) every case of ``setup`` (:func:`cases_of`); write ``coverage.json`` and
+    ``ranks.png``."""
     out = Path(out)
-    results, cases = [], cases_of(data, setup, n, materials, noise_seeds)
+    results, cases = [], cases_of(data, setup, n, materials, noise_seeds, starts)
     for case in cases:
         path = out / "cases" / f"{case.name}.json"
         if path.exists():

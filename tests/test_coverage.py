@@ -31,6 +31,19 @@ def test_cases_cover_every_test_material_and_starting_design(data):
         cases_of(data, "two frames")
 
 
+def test_one_start_per_material_gives_independent_cases_over_every_design(data):
+    materials = list(range(2 * len(data.designs) + 1))
+    cases = cases_of(data, "single", materials=materials, starts=1)
+    assert [c.material for c in cases] == materials  # one case per material
+    counts = np.bincount([c.designs[0] for c in cases], minlength=len(data.designs))
+    assert counts.max() - counts.min() <= 1  # the designs used evenly
+    # a subset of the materials keeps its cases (a study split over processes)
+    assert cases_of(data, "single", materials=materials[3:5], starts=1) == cases[3:5]
+    assert len(cases_of(data, "single", materials=[0], starts=len(data.designs))) == len(data.designs)
+    with pytest.raises(ValueError, match="starting designs per material must be in"):
+        cases_of(data, "single", starts=0)
+
+
 def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
     hits = [True] * 45 + [False] * 5  # 90 % of 50
     results = [
