@@ -229,7 +229,7 @@ def run_check(
         half,
         band,
         settings.confirm,
-        mesh_resolved=disc is None or disc.resolved,
+        carried_sigma=0.0 if disc is None else disc.remaining_sigma,
         max_iterations=settings.max_iterations,
     )  # also the baseline's metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
@@ -307,7 +307,7 @@ def _next_round(
         [c for c in settings.candidates if c not in settings.add],
         *region,
         settings.confirm,
-        mesh_resolved=disc is None or disc.resolved,
+        carried_sigma=0.0 if disc is None else disc.remaining_sigma,
         added=settings.add,
         max_iterations=settings.max_iterations,
     )

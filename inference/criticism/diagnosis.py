@@ -12,6 +12,7 @@ from scipy import stats
 
 from inference.criticism.calibration import Calibration, calibrate
 from inference.criticism.data import Data, NoiseModel, stack
+from inference.criticism.discretisation import MESH_RESOLVED_SIGMA
 from inference.criticism.metrics import (
     Hotspot,
     RegionResidual,
@@ -222,7 +223,7 @@ def diagnose(
     half: float,
     band: float,
     confirm: int = 2,
-    mesh_resolved: bool = True,
+    carried_sigma: float = 0.0,
     added: Sequence[str] = (),
     **fit_kwargs,
 ) -> Diagnosis:
@@ -230,8 +231,9 @@ def diagnose(
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
     (only those with strong evidence) are calibrated for real, and their fitted Delta BIC and
-    share of the excess residual replace the linearised ones. ``added``: effects ``cal``
-    already includes (a later round), kept in the verdict's ``--add`` advice.
+    share of the excess residual replace the linearised ones. ``carried_sigma``: RMS of the
+    model error ``data`` carries (the mesh's, in noise sd; see :func:`verdict`). ``added``:
+    effects ``cal`` already includes (a later round), kept in the verdict's ``--add`` advice.
     """
     start, runs0 = time.perf_counter(), forward.runs
     metrics = residual_metrics(cal, data)
@@ -250,8 +252,16 @@ def diagnose(
         scores.sort(key=lambda s: -s.delta_bic)
     for s in scores:
         s.explains = metrics.structured and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
-    text = verdict(metrics, scores, regions, hotspot, mesh_resolved, added)
+    text = verdict(metrics, scores, regions, hotspot, carried_sigma, added)
     return Diagnosis(metrics, regions, hotspot, scores, fits, text, forward.runs - runs0, time.perf_counter() - start)
+
+
+def mesh_error_factor(chi2_per_dof: float, carried_sigma: float) -> float:
+    """How many times its estimate the carried model error (RMS ``carried_sigma`` noise sd) would
+    have to be for the residual to be noise and model error alone: the k with
+    1 + (k c)^2 = chi2_per_dof (1 + c^2) (0 when the residual is smaller than expected)."""
+    c2 = carried_sigma**2
+    return math.sqrt(max(chi2_per_dof * (1.0 + c2) - 1.0, 0.0) / c2)
 
 
 def verdict(
@@ -259,13 +269,15 @@ def verdict(
     scores: list[CandidateScore],
     regions: list[RegionResidual],
     hotspot: Hotspot,
-    mesh_resolved: bool = True,
+    carried_sigma: float = 0.0,
     added: Sequence[str] = (),
 ) -> str:
     """One paragraph: is the residual noise, where is it not, which candidate explains it.
 
-    ``mesh_resolved`` False (the model's discretisation error exceeds the noise) turns "something
-    outside the registry is missing" into "rerun on a finer mesh first"."""
+    A carried discretisation error above half the noise (``carried_sigma`` > 0.5, RMS in noise
+    sd) turns "something outside the registry is missing" into "rerun on a finer mesh first",
+    with how many times its estimate the mesh's error would have to be to explain the residual
+    (:func:`mesh_error_factor`)."""
     if not metrics.structured:
         return (
             f"The residual is consistent with the stated noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
@@ -282,10 +294,12 @@ def verdict(
     best = next((s for s in scores if s.explains), None)
     if best is None:
         lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
-        if not mesh_resolved:
+        if carried_sigma > MESH_RESOLVED_SIGMA:
+            factor = mesh_error_factor(metrics.chi2_per_dof, carried_sigma)
             return (
                 text + " No candidate explains the residual." + lead + " The check's own discretisation error "
-                "exceeds the noise, so this structure may be the mesh's: rerun on a finer mesh before concluding "
+                f"exceeds the noise, so this structure may be the mesh's (it would take the mesh's error at "
+                f"{factor:.1f} times its estimate): rerun on a finer mesh before concluding "
                 "that something outside the registry is missing."
             )
         return text + " No candidate explains the residual." + lead + " Something outside the registry is missing."

@@ -45,6 +45,7 @@ REFINEMENTS = ("uniform", "edge")
 # refinement, 39 % -> 16 % from the Q2 reference (1.3); Q2 under membrane-edge refinement
 # 2 -> 1 -> 0.5 mm against the Richardson limit, 1.53 (paper series) and 1.6 (small series).
 OBSERVED_ORDER = {1: 1.3, 2: 1.5}
+MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
 
 
 def observed_order(config: Config) -> float:
@@ -172,7 +173,7 @@ class DiscretisationError:
     @property
     def resolved(self) -> bool:
         """The corrected model's error is below half the noise."""
-        return self.remaining_sigma <= 0.5
+        return self.remaining_sigma <= MESH_RESOLVED_SIGMA
 
     def suggested_h_edge(self) -> float:
         """Membrane-edge cell size [mm] whose error would be half the noise (convergence of
