@@ -73,9 +73,9 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
     )
     run = len(list(cases.glob("*.json"))) - done_before
     timing = {"cases_run": run, "seconds_per_case": (time.perf_counter() - start) / run} if run else {}
-    previous = args.results / f"{label}.json"
-    if not run and previous.exists():
-        timing = {k: v for k, v in json.loads(previous.read_text()).items() if k in TIMING}
+    path = args.results / f"{label}.json"
+    if not run and path.exists():
+        timing = {k: v for k, v in json.loads(path.read_text()).items() if k in TIMING}
     record = {
         **summary.to_json(),
         **timing,
@@ -83,7 +83,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         "data": str(args.data),
         "starts_per_material": args.starts,
     }
-    previous.write_text(json.dumps(record, indent=2) + "\n")
+    path.write_text(json.dumps(record, indent=2) + "\n")
     shutil.copy(args.store / label / "ranks.png", args.results / f"ranks_{label}.png")
     return summary
 
