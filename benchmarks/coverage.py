@@ -60,6 +60,12 @@ def main() -> None:
                 print(label, {n: (e.coverage_50, e.coverage_95) for n, e in summary.parameters.items()}, flush=True)
 
 
+def material_scale(emulator) -> list[float] | None:
+    """(shape, rate) of the emulator's material scale, or None (an emulator without one)."""
+    excess = emulator.held_out_excess
+    return None if excess is None or excess.material_scale is None else list(excess.material_scale)
+
+
 def run_study(args, emulator, data, setup: str, settings, sd: float, label: str):
     """One coverage study, written to ``<results>/<label>.json`` with the seconds per case of the
     cases this call ran (a pass that only summarises keeps the previous file's timing)."""
@@ -80,6 +86,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         **summary.to_json(),
         **timing,
         "emulator": str(args.emulator),
+        "material_scale": material_scale(emulator) if settings.emulator_error else None,
         "data": str(args.data),
         "starts_per_material": args.starts,
     }

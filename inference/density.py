@@ -9,16 +9,17 @@ With ``gp_variance="exact"`` the autograd density is used (its O(n^2) triangular
 dominate and are more stable than any closed form through K^-1). The tests compare both.
 
 Notation: u unconstrained (dim,), z = sigmoid(u[:5]), params = lower + z * span,
-x the 7 emulator inputs of each observation in the emulator's unit box. The covariance of PC
-weight g over the observations is Q_g diag(lambda_g + s_g) Q_g^T with Q_g, lambda_g fixed
-(:meth:`SkinPosterior.fixed_eigen`) and s_g = sigma_c(g)^2 (HalfCauchy noise) or 0 (known noise,
-inside lambda): in the rotated weights Q_g^T w_g the likelihood is a product of independent normals.
+x the 7 emulator inputs of each observation in the emulator's unit box. In the rotated weights
+W_g^T w_g (W_g, e_g fixed: :meth:`SkinPosterior.fixed_eigen`) the likelihood is a product of
+independent normals of variance lambda e_g + s_g, lambda the emulator scale (1 when it is not
+sampled) and s_g = sigma_c(g)^2 (HalfCauchy noise) or 1 (known noise, whitened by W_g).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.special import gammaln
 
 
 class FusedLogDensity:
@@ -40,12 +41,14 @@ class FusedLogDensity:
         self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
         self.lower, self.span = posterior.lower.numpy(), posterior.span.numpy()
         self.design = posterior.design_inputs.numpy()
-        self.rotation, self.fixed_var = posterior.fixed_eigen()  # (G, n_obs, n_obs), (n_obs, G)
+        self.rotation, self.fixed_var, self.log_det_noise = posterior.fixed_eigen()  # (G, n_obs, n_obs), (n_obs, G)
         self.weights = self.rotate(posterior.weights.numpy())
         self.component = posterior.component_of_weight.numpy()
         self.n_comp = len(emu.components)
         self.halfcauchy = posterior.noise == "halfcauchy"
         self.noise_scale = posterior.noise_scale
+        self.n_sigma = posterior.n_sigma
+        self.scale_prior = posterior.scale_prior
 
     def rotate(self, a: np.ndarray) -> np.ndarray:
         """Q_g^T a_g for every weight g: a (n_obs, G, ...) -> (n_obs, G, ...)."""
@@ -71,10 +74,11 @@ class FusedLogDensity:
         x = (x - self.in_lower) / self.in_span
         mean, dmean = self.gp_mean(x)
         mean, dmean = self.rotate(mean), self.rotate(dmean)
-        sigma = np.exp(u[5:])
-        total = self.fixed_var + (sigma[self.component] ** 2 if self.halfcauchy else 0.0)
+        sigma = np.exp(u[5 : 5 + self.n_sigma])
+        scale = np.exp(u[-1]) if self.scale_prior else 1.0
+        total = scale * self.fixed_var + (sigma[self.component] ** 2 if self.halfcauchy else 1.0)
         r = self.weights - mean
-        loglik = -0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total))
+        loglik = -0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total)) - 0.5 * self.log_det_noise
         d_mean = r / total  # dL/dmean
         d_total = 0.5 * (r**2 / total**2 - 1 / total)  # dL/dtotal
         dx = np.einsum("og,ogd->d", d_mean, dmean)
@@ -85,12 +89,16 @@ class FusedLogDensity:
         value = loglik - np.sum(np.logaddexp(0, -u[:5]) + np.logaddexp(0, u[:5]))
         if self.halfcauchy:
             s = self.noise_scale
-            value += np.sum(np.log(2 / (np.pi * s)) - np.log1p((sigma / s) ** 2)) + np.sum(u[5:])
+            value += np.sum(np.log(2 / (np.pi * s)) - np.log1p((sigma / s) ** 2)) + np.sum(u[5 : 5 + self.n_sigma])
             d_sigma = np.bincount(
                 self.component, weights=(d_total * 2 * sigma[self.component]).sum(0), minlength=self.n_comp
             )
             d_sigma += -2 * sigma / (s**2 + sigma**2)
-            grad[5:] = d_sigma * sigma + 1.0
+            grad[5 : 5 + self.n_sigma] = d_sigma * sigma + 1.0
+        if self.scale_prior:  # InverseGamma(a, b) of lambda = e^v, with the Jacobian e^v
+            a, b = self.scale_prior
+            value += a * np.log(b) - gammaln(a) - a * u[-1] - b / scale
+            grad[-1] = np.sum(d_total * self.fixed_var) * scale - a + b / scale
         return float(value), grad
 
 

@@ -4,13 +4,16 @@ observed PC weights around the emulator's prediction.
 For observation o (one design alpha_o and load fraction t_o) and PC weight g of strain
 component c(g):
 
-    w_g ~ MultivariateNormal(m_g(params, alpha_o t_o), C_g + tau_g^2 (s s^T) * R_g + T_g + S_g)   (over o)
+    w_g ~ MultivariateNormal(m_g(params, alpha_o t_o), lambda (C_g + tau_g^2 (s s^T) * R_g + T_g) + S_g)   (over o)
 
 with m_g the emulator's GP predictive mean, C_g its joint predictive covariance over the
 observations, and, when ``emulator_error`` is on (default), the emulator's error beyond it
 (:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, scaled by each
 observation's load s_o = |alpha_o t_o| / |alpha t|_max and correlated between observations as
-R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection picks up.
+R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection picks up; and
+lambda, the material scale of that emulator error, lambda ~ InverseGamma(a, b) fitted on the
+held-out materials (:func:`surrogate.error_model.fit_material_scale`), sampled as
+``emulator_scale`` (fixed at 1 when emulator_error is off or the emulator predates it).
 Weights g are independent, as the GPs are. S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
@@ -44,6 +47,7 @@ import numpy as np
 import pyro
 import pyro.distributions as dist
 import torch
+from scipy.stats import invgamma
 
 from inference.observations import Observation
 from skinfem.config import PARAM_NAMES
@@ -198,7 +202,7 @@ class ErrorBudget:
 
 
 class SkinPosterior:
-    """Log posterior of (mu, k1, k2, kappa, theta[, sigma_c...]) on an unconstrained vector.
+    """Log posterior of (mu, k1, k2, kappa, theta[, sigma_c...][, lambda]) on an unconstrained vector.
 
     Args:
         noise: "halfcauchy" (unknown sigma per component) or "known" (from the measurement sd).
@@ -241,6 +245,8 @@ class SkinPosterior:
         )
         self.noise_var = None if observed.noise_var is None else torch.as_tensor(observed.noise_var)
         self.excess_cov, self.truncation_var = self._emulator_error_terms()
+        excess = emulator.held_out_excess
+        self.scale_prior = excess.material_scale if emulator_error and excess is not None else None
         self.fixed_gp_cov: torch.Tensor | None = None
         self._density = None
 
@@ -262,9 +268,18 @@ class SkinPosterior:
 
     # -- parametrisation -------------------------------------------------------------------
     @property
+    def n_sigma(self) -> int:
+        return len(self.emulator.components) if self.noise == "halfcauchy" else 0
+
+    @property
     def names(self) -> tuple[str, ...]:
-        sigmas = tuple(f"sigma_{c}" for c in self.emulator.components) if self.noise == "halfcauchy" else ()
-        return PARAM_NAMES + sigmas
+        sigmas = tuple(f"sigma_{c}" for c in self.emulator.components[: self.n_sigma])
+        return PARAM_NAMES + sigmas + (("emulator_scale",) if self.scale_prior else ())
+
+    def latents(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Constrained (dim,) -> params (5,), sigma (n_sigma,), emulator scale lambda (scalar, 1 if fixed)."""
+        scale = values[-1] if self.scale_prior else torch.ones((), dtype=values.dtype)
+        return values[:5], values[5 : 5 + self.n_sigma], scale
 
     @property
     def dim(self) -> int:
@@ -302,20 +317,24 @@ class SkinPosterior:
             return self.noise_var
         return (sigma[self.component_of_weight] ** 2).expand(self.weights.shape)
 
-    def model_covariance(self, gp_cov: torch.Tensor) -> torch.Tensor:
-        """Emulator covariance (G, n_obs, n_obs): GP + held-out excess + truncation."""
-        return gp_cov + self.excess_cov + torch.diag_embed(self.truncation_var.T)
+    def model_covariance(self, gp_cov: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+        """Emulator covariance (G, n_obs, n_obs): lambda (GP + held-out excess + truncation)."""
+        return scale * (gp_cov + self.excess_cov + torch.diag_embed(self.truncation_var.T))
 
-    def moments(self, params: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def moments(
+        self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean (n_obs, G) and covariance over the observations (G, n_obs, n_obs) of the weights."""
         mean, gp_cov = self.gp_moments(params)
-        return mean, self.model_covariance(gp_cov) + torch.diag_embed(self.noise_variance(sigma).T)
+        return mean, self.model_covariance(gp_cov, scale) + torch.diag_embed(self.noise_variance(sigma).T)
 
-    def whitened_residuals(self, params: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def whitened_residuals(
+        self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """L_g^-1 (w_g - m_g) (n_obs, G) and log diag L_g (n_obs, G), L_g the Cholesky factor of
         weight g's covariance; NaN where a covariance is not positive definite (non-finite
         parameters, as a line search may try)."""
-        mean, cov = self.moments(params, sigma)
+        mean, cov = self.moments(params, sigma, scale)
         chol, info = torch.linalg.cholesky_ex(cov)
         if bool(info.any()):
             nan = torch.full_like(mean, math.nan)
@@ -324,8 +343,10 @@ class SkinPosterior:
         white = torch.linalg.solve_triangular(chol, resid, upper=False)[..., 0]
         return white.T, torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).T
 
-    def log_likelihood(self, params: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-        white, log_diag = self.whitened_residuals(params, sigma)
+    def log_likelihood(
+        self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
+    ) -> torch.Tensor:
+        white, log_diag = self.whitened_residuals(params, sigma, scale)
         return -0.5 * torch.sum(white**2) - torch.sum(log_diag) - 0.5 * white.numel() * math.log(2 * math.pi)
 
     def pointwise_log_likelihood(self, values: torch.Tensor) -> torch.Tensor:
@@ -335,7 +356,7 @@ class SkinPosterior:
         those of L_g^-1 w_g, independent standard normals given the parameters, and sum to
         :meth:`log_likelihood`; with one observation they are the weights' own densities.
         """
-        white, log_diag = self.whitened_residuals(values[:5], values[5:])
+        white, log_diag = self.whitened_residuals(*self.latents(values))
         return -0.5 * white**2 - log_diag - 0.5 * math.log(2 * math.pi)
 
     def log_prior_and_jacobian(self, u: torch.Tensor) -> torch.Tensor:
@@ -343,17 +364,23 @@ class SkinPosterior:
         log_z = torch.nn.functional.logsigmoid(u[..., :5]) + torch.nn.functional.logsigmoid(-u[..., :5])  # log z(1-z)
         log_jac = torch.sum(torch.log(self.span) + log_z, -1) + torch.sum(u[..., 5:], -1)
         log_prior = -torch.sum(torch.log(self.span))
-        if u.shape[-1] > 5:
-            sigma = torch.exp(u[..., 5:])
+        if self.n_sigma:
+            sigma = torch.exp(u[..., 5 : 5 + self.n_sigma])
             log_prior = log_prior + torch.sum(
                 dist.HalfCauchy(torch.tensor(self.noise_scale, dtype=u.dtype), validate_args=False).log_prob(sigma), -1
             )
+        if self.scale_prior:
+            log_prior = log_prior + self.scale_distribution(u.dtype).log_prob(torch.exp(u[..., -1]))
         return log_prior + log_jac
+
+    def scale_distribution(self, dtype: torch.dtype = torch.float64) -> dist.InverseGamma:
+        """The prior of the emulator scale lambda: InverseGamma(a, b) of the emulator's error model."""
+        a, b = self.scale_prior
+        return dist.InverseGamma(torch.tensor(a, dtype=dtype), torch.tensor(b, dtype=dtype), validate_args=False)
 
     def log_density(self, u: torch.Tensor) -> torch.Tensor:
         """Log posterior density of the unconstrained vector u (dim,), Jacobian included."""
-        values = self.constrain(u)
-        return self.log_likelihood(values[:5], values[5:]) + self.log_prior_and_jacobian(u)
+        return self.log_likelihood(*self.latents(self.constrain(u))) + self.log_prior_and_jacobian(u)
 
     def potential(self, sites: dict[str, torch.Tensor]) -> torch.Tensor:
         """Pyro's ``potential_fn``: minus the log density of ``sites["u"]``.
@@ -370,20 +397,35 @@ class SkinPosterior:
             self._density = FusedLogDensity(self)
         return fused_potential(sites["u"], self._density)
 
-    def fixed_eigen(self) -> tuple[np.ndarray, np.ndarray]:
-        """Eigen-decomposition of the fixed part of each weight's covariance (``gp_variance="mode"``):
-        Q (G, n_obs, n_obs), lambda (n_obs, G). Fixed part: the emulator covariance, plus the noise
-        when it is known; with ``noise="halfcauchy"`` the covariance is Q diag(lambda + sigma^2) Q^T."""
+    def fixed_eigen(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """The fixed emulator covariance E_g (``gp_variance="mode"``) diagonalised together with the
+        noise: (W (G, n_obs, n_obs), e (n_obs, G), log det of the known noise covariance).
+
+        With ``noise="halfcauchy"`` W_g = Q_g, E_g = Q_g diag(e_g) Q_g^T and the covariance is
+        W_g diag(lambda e_g + sigma^2) W_g^T; with known noise N_g (diagonal), W_g = N_g^-1/2 Q_g
+        for N_g^-1/2 E_g N_g^-1/2 = Q_g diag(e_g) Q_g^T, and W_g^T w_g has covariance
+        diag(lambda e_g + 1)."""
         fixed = self.model_covariance(self.fixed_gp_cov)
-        if self.noise == "known":
-            fixed = fixed + torch.diag_embed(self.noise_var.T)
-        eigenvalues, vectors = torch.linalg.eigh(fixed)
-        return vectors.numpy(), eigenvalues.T.numpy()
+        if self.noise == "halfcauchy":
+            eigenvalues, vectors = torch.linalg.eigh(fixed)
+            return vectors.numpy(), eigenvalues.T.numpy(), 0.0
+        inv_sd = torch.rsqrt(self.noise_var.T)  # (G, n_obs)
+        eigenvalues, vectors = torch.linalg.eigh(fixed * inv_sd[:, :, None] * inv_sd[:, None, :])
+        return (inv_sd[:, :, None] * vectors).numpy(), eigenvalues.T.numpy(), float(torch.log(self.noise_var).sum())
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_density": None}  # rebuilt where it is used
 
     # -- helpers ---------------------------------------------------------------------------
+    def initial_latents(self) -> np.ndarray:
+        """Unconstrained start of the positive latents (dim - 5,): log of :meth:`initial_sigma`
+        and of the emulator scale's prior median."""
+        sigma = np.log(self.initial_sigma()) if self.n_sigma else np.zeros(0)
+        if not self.scale_prior:
+            return sigma
+        a, b = self.scale_prior
+        return np.append(sigma, np.log(invgamma(a, scale=b).median()))
+
     def initial_sigma(self) -> np.ndarray:
         """A data-driven starting noise level per component: RMS of the observed weights / 10."""
         out = []
@@ -426,18 +468,19 @@ class SkinPosterior:
 
     def error_budget(self, values: np.ndarray) -> ErrorBudget:
         """Which term dominates the weights' variance at constrained ``values`` (dim,)."""
-        values = torch.as_tensor(values, dtype=torch.float64)
+        params, sigma, scale = self.latents(torch.as_tensor(values, dtype=torch.float64))
         with torch.no_grad():
-            gp = torch.diagonal(self.gp_moments(values[:5])[1], dim1=-2, dim2=-1).T
+            gp = torch.diagonal(self.gp_moments(params)[1], dim1=-2, dim2=-1).T
             excess = torch.diagonal(self.excess_cov, dim1=-2, dim2=-1).T
-            terms = [self.noise_variance(values[5:]), gp, excess, self.truncation_var]
+            terms = [self.noise_variance(sigma), scale * gp, scale * excess, scale * self.truncation_var]
             total = sum(terms)
             shares = [float(torch.mean(term / total)) for term in terms]
         return ErrorBudget(*shares)
 
 
-def pyro_prior(posterior: SkinPosterior) -> tuple[torch.Tensor, torch.Tensor]:
-    """The priors in Pyro's language: params (5,) and sigma (n_sigma,) (empty with known noise)."""
+def pyro_prior(posterior: SkinPosterior) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The priors in Pyro's language: params (5,), sigma (n_sigma,) (empty with known noise) and
+    the emulator scale (1 when it is not sampled)."""
     lo, span = posterior.lower, posterior.span
     params = torch.stack(
         [pyro.sample(name, dist.Uniform(lo[i], lo[i] + span[i])) for i, name in enumerate(PARAM_NAMES)]
@@ -446,13 +489,18 @@ def pyro_prior(posterior: SkinPosterior) -> tuple[torch.Tensor, torch.Tensor]:
         torch.stack(
             [
                 pyro.sample(name, dist.HalfCauchy(torch.tensor(posterior.noise_scale, dtype=torch.float64)))
-                for name in posterior.names[5:]
+                for name in posterior.names[5 : 5 + posterior.n_sigma]
             ]
         )
         if posterior.noise == "halfcauchy"
         else torch.zeros(0, dtype=torch.float64)
     )
-    return params, sigma
+    scale = (
+        pyro.sample("emulator_scale", posterior.scale_distribution())
+        if posterior.scale_prior
+        else torch.ones((), dtype=torch.float64)
+    )
+    return params, sigma, scale
 
 
 def prior_draws(posterior: SkinPosterior, n: int, seed: int) -> np.ndarray:
@@ -467,6 +515,5 @@ def prior_draws(posterior: SkinPosterior, n: int, seed: int) -> np.ndarray:
 
 def pyro_model(posterior: SkinPosterior) -> None:
     """The same model in Pyro's language (reference for :class:`SkinPosterior`)."""
-    params, sigma = pyro_prior(posterior)
-    mean, cov = posterior.moments(params, sigma)
+    mean, cov = posterior.moments(*pyro_prior(posterior))
     pyro.sample("weights", dist.MultivariateNormal(mean.T, covariance_matrix=cov).to_event(1), obs=posterior.weights.T)

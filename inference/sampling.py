@@ -52,9 +52,9 @@ def find_mode(posterior: SkinPosterior, n_starts: int = 8, seed: int = 0) -> np.
     """Unconstrained vector of the highest posterior density found from ``n_starts`` starts."""
     rng = np.random.default_rng(seed)
     best, best_value = None, -np.inf
-    sigma0 = np.log(posterior.initial_sigma()) if posterior.dim > 5 else np.zeros(0)
+    latent0 = posterior.initial_latents()
     for k in range(n_starts):
-        start = np.concatenate([rng.normal(0, 1.0, 5) if k else np.zeros(5), sigma0])
+        start = np.concatenate([rng.normal(0, 1.0, 5) if k else np.zeros(5), latent0])
         u = torch.tensor(start, dtype=torch.float64, requires_grad=True)
         opt = torch.optim.LBFGS([u], lr=1.0, max_iter=200, line_search_fn="strong_wolfe")
 
@@ -327,8 +327,8 @@ GROUP_ATTRS = {
     },
     "observed_data": {
         "weights": "PC weights of the observed log strains (masked least-squares projection on the emulator's "
-        "PCA basis); raw, not whitened; covariance per PC over the observations: GP + held-out excess "
-        "+ PCA truncation + noise (inference.model)",
+        "PCA basis); raw, not whitened; covariance per PC over the observations: emulator_scale x (GP + "
+        "held-out excess + PCA truncation) + noise (inference.model)",
     },
     "constant_data": {
         "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
@@ -407,7 +407,8 @@ def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, s
 
 @dataclass(frozen=True)
 class ParameterSummary:
-    """One sampled parameter of ``summary.json``, in its unit (theta in degrees, sigma in PC-weight units).
+    """One sampled parameter of ``summary.json``, in its unit (theta in degrees, sigma in PC-weight
+    units, the emulator scale lambda a factor on the emulator's error variance).
 
     ``prior`` and ``interval_share_of_prior`` are given for the five skin parameters only, ``true``
     and ``covered`` when the truth is known; they are left out of ``summary.json`` otherwise.
@@ -467,7 +468,7 @@ class PosteriorSummary:
     were recorded read with those empty or None.
     """
 
-    parameters: dict[str, ParameterSummary]  # by name: mu, k1, k2, kappa, theta, then sigma_<component>
+    parameters: dict[str, ParameterSummary]  # mu, k1, k2, kappa, theta, sigma_<component>, emulator_scale
     chains: int
     draws_per_chain: int
     divergences: int  # divergent transitions after warm-up, all chains
@@ -482,12 +483,12 @@ class PosteriorSummary:
 
     @property
     def max_r_hat(self) -> float:
-        """The largest R-hat over all parameters (noise sigmas included)."""
+        """The largest R-hat over all parameters (noise sigmas and emulator scale included)."""
         return max(p.r_hat for p in self.parameters.values())
 
     @property
     def min_ess(self) -> float:
-        """The smallest bulk or tail ESS over all parameters (noise sigmas included)."""
+        """The smallest bulk or tail ESS over all parameters (noise sigmas and emulator scale included)."""
         return min(p.ess for p in self.parameters.values())
 
     def to_json(self) -> dict:

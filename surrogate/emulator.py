@@ -392,8 +392,10 @@ def _cross_validated_excess(
     n_jobs: int,
 ):
     """The held-out excess of :func:`surrogate.error_model.cross_validated_excess` over folds of
-    materials, each fold's GPs refitted from the fitted kernels (``box``: the inputs' (lower, upper))."""
+    materials, each fold's GPs refitted from the fitted kernels (``box``: the inputs' (lower,
+    upper)); the material scale from each design's last frame."""
     lower, upper = box
+    bank = GPBank.from_sklearn(gps)
     return cross_validated_excess(
         lambda x, y: GPBank.from_sklearn(
             fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs, kernels=[g.gp.kernel_ for g in gps])
@@ -403,6 +405,8 @@ def _cross_validated_excess(
         rows.index[:, 0],
         rows.inputs[:, 5:],
         subset,
+        rows.index[:, 2] == rows.index[:, 2].max(),
+        lambda design: design_correlation(bank, (design - lower[5:]) / (upper[5:] - lower[5:])),
         seed=seed,
     )
 

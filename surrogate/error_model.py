@@ -20,6 +20,15 @@ of one material and independent between weights (as the GPs are):
    for a field observed on every cell (the projection is orthogonal), and growing with the
    holes of a DIC field; taken independent between observations.
 
+The error of one material is not an average material's: on held-out materials most have a
+smaller error than the mean square that tau_g^2 matches and a few a much larger one (the same
+material is badly emulated in every weight and design). The error model therefore carries a
+**material scale** lambda: the emulator covariance of one material is lambda times the terms
+above, lambda ~ InverseGamma(a, a - 1) (mean 1: the level is tau_g^2's), its shape a fitted by
+maximum likelihood to the held-out materials' errors at the largest load
+(:func:`fit_material_scale`); a -> infinity is the Gaussian model. The posterior samples
+lambda with the parameters.
+
 Units: weights are in the PCA's standardised units (per-cell scaled strain), as the GPs.
 """
 
@@ -30,7 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize, minimize_scalar
+from scipy.special import gammaln
 
 from surrogate.gp import GPBank
 from surrogate.pca import StrainPCA
@@ -48,6 +58,8 @@ class HeldOutExcess:
         folds: number of material folds.
         n_rows: left-out (material, design, frame) rows the excess was fitted on.
         load_reference: |alpha t|_max of the training rows [-] (s = |alpha t| / load_reference).
+        material_scale: (shape a, rate b) of the material scale lambda ~ InverseGamma(a, b)
+            (:func:`fit_material_scale`), or None (lambda = 1: emulators fitted before it).
     """
 
     variance: tuple[float, ...]
@@ -55,6 +67,7 @@ class HeldOutExcess:
     folds: int
     n_rows: int
     load_reference: float
+    material_scale: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
         return {
@@ -63,12 +76,19 @@ class HeldOutExcess:
             "folds": self.folds,
             "n_rows": self.n_rows,
             "load_reference": self.load_reference,
+            "material_scale": None if self.material_scale is None else list(self.material_scale),
         }
 
     @classmethod
     def from_json(cls, entry: dict) -> HeldOutExcess:
+        scale = entry.get("material_scale")
         return cls(
-            tuple(entry["variance"]), tuple(entry["z_rms"]), entry["folds"], entry["n_rows"], entry["load_reference"]
+            tuple(entry["variance"]),
+            tuple(entry["z_rms"]),
+            entry["folds"],
+            entry["n_rows"],
+            entry["load_reference"],
+            None if scale is None else (float(scale[0]), float(scale[1])),
         )
 
     def load_scale(self, design_inputs: np.ndarray) -> np.ndarray:
@@ -87,6 +107,60 @@ def excess_variance(error: np.ndarray, variance: np.ndarray, scale: np.ndarray) 
     upper = np.log(np.mean(error**2 / np.maximum(scale, 1e-3) ** 2)) + 2
     best = minimize_scalar(minus_log_likelihood, bounds=(upper - 40, upper), method="bounded", options={"xatol": 1e-6})
     return float(np.exp(best.x)) if best.fun < at_zero else 0.0
+
+
+def fit_material_scale(quadratic: np.ndarray, n_values: np.ndarray) -> tuple[float, float]:
+    """The spread of the emulator's error between materials: (shape a, rate a - 1) of
+    lambda ~ InverseGamma, mean 1.
+
+    Material m's errors e_m (n_m values) are N(0, lambda_m C_m) given its lambda_m; integrating
+    lambda_m ~ InverseGamma(a, b) out, the log likelihood of its Mahalanobis form
+    q_m = e_m^T C_m^-1 e_m is
+    a log b - log Gamma(a) + log Gamma(a + n_m / 2) - (a + n_m / 2) log(b + q_m / 2) + const.
+    Both are fitted; the shape a (the spread) is kept and the level set to a mean of 1: the
+    cross-validated errors come from GPs fitted on fewer materials than the emulator's, so
+    their level (b / a) overstates a fresh material's error, which tau_g^2 is checked against
+    (``benchmarks/emulator_error.py``). a is kept in [1.5, 1e4] (a = 1e4: no spread,
+    lambda = 1; a = 1.5: as heavy as a Student t with 3 degrees of freedom).
+
+    Args:
+        quadratic: (M,) q_m of each material [-]; n_values: (M,) n_m.
+    """
+    q, n = np.asarray(quadratic, dtype=float), np.asarray(n_values, dtype=float)
+    if len(q) < 3 or not np.all(np.isfinite(q)):
+        raise ValueError(f"the material scale needs finite errors of >= 3 materials, got {q.tolist()}")
+
+    def minus_log_likelihood(log_ab: np.ndarray) -> float:
+        a, b = np.exp(log_ab)
+        return -float(np.sum(a * np.log(b) - gammaln(a) + gammaln(a + n / 2) - (a + n / 2) * np.log(b + q / 2)))
+
+    mean = float(np.sum(q) / np.sum(n))
+    start = np.log([2.0, 2.0 * mean])
+    best = minimize(minus_log_likelihood, start, method="L-BFGS-B", bounds=[(np.log(1.5), np.log(1e4)), (None, None)])
+    a = float(np.exp(best.x[0]))
+    return a, a - 1
+
+
+def material_quadratic_forms(
+    error: np.ndarray, variance: np.ndarray, materials: np.ndarray, correlation: Callable[[np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """q_m = sum_g e_mg^T C_mg^-1 e_mg and n_m of every material from its rows at one load.
+
+    Args:
+        error: (n, G) errors of the rows; variance: (n, G) their GP variance plus held-out
+            excess; materials: (n,) material of each row.
+        correlation: (k,) row indices of one material -> (G, k, k) correlation of its excess
+            between those rows; the covariance is diag(variance) scaled to it (C = D^1/2 R D^1/2).
+    """
+    quadratic, counts = [], []
+    for m in np.unique(materials):
+        rows = np.flatnonzero(materials == m)
+        sd = np.sqrt(variance[rows]).T  # (G, k)
+        cov = correlation(rows) * sd[:, :, None] * sd[:, None, :]
+        resid = error[rows].T[..., None]
+        quadratic.append(float(np.sum(resid * np.linalg.solve(cov, resid))))
+        counts.append(resid.size)
+    return np.array(quadratic), np.array(counts)
 
 
 def cross_validated_errors(
@@ -129,10 +203,13 @@ def cross_validated_excess(
     materials: np.ndarray,
     design_inputs: np.ndarray,
     gp_subset: np.ndarray,
+    scale_rows: np.ndarray,
+    correlation: Callable[[np.ndarray], np.ndarray],
     folds: int = FOLDS,
     seed: int = 0,
 ) -> HeldOutExcess:
-    """The held-out excess of the GP fit (:func:`cross_validated_errors`), load-scaled.
+    """The held-out excess of the GP fit (:func:`cross_validated_errors`), load-scaled, and the
+    spread of the material scale (:func:`fit_material_scale`) over the left-out materials.
 
     Each fold's GPs are fitted anew, hyper-parameters included (the emulator starts the
     optimizer from its fitted kernels, without restarts): kernels tuned to all materials know
@@ -140,15 +217,31 @@ def cross_validated_excess(
     largest loads half what fresh materials show (``benchmarks/emulator_error.py``).
 
     Args:
-        design_inputs: (n, 2) raw alpha11 t, alpha22 t of each row (the load scale s); the
-            others as in :func:`cross_validated_errors`.
+        design_inputs: (n, 2) raw alpha11 t, alpha22 t of each row (the load scale s).
+        scale_rows: (n,) bool, the rows the material scale is fitted on (one load fraction,
+            e.g. each design's last frame: the rows of one load are what a posterior sees).
+        correlation: raw design inputs (k, 2) -> (G, k, k) correlation of a material's error
+            between them (:meth:`surrogate.emulator.Emulator.error_correlation`).
+        The others as in :func:`cross_validated_errors`.
     """
     error, variance = cross_validated_errors(fit, x, weights, materials, gp_subset, folds, seed)
     load = np.linalg.norm(design_inputs, axis=1)
     scale = load / load.max()
-    tau2 = [excess_variance(error[:, g], variance[:, g], scale) for g in range(error.shape[1])]
+    tau2 = np.array([excess_variance(error[:, g], variance[:, g], scale) for g in range(error.shape[1])])
     z_rms = np.sqrt(np.mean(error**2 / variance, axis=0))
-    return HeldOutExcess(tuple(tau2), tuple(z_rms.tolist()), folds, len(error), float(load.max()))
+    total = variance + tau2 * scale[:, None] ** 2
+    picked = np.flatnonzero(scale_rows)
+    quadratic, counts = material_quadratic_forms(
+        error[picked], total[picked], materials[picked], lambda rows: correlation(design_inputs[picked][rows])
+    )
+    return HeldOutExcess(
+        tuple(tau2.tolist()),
+        tuple(z_rms.tolist()),
+        folds,
+        len(error),
+        float(load.max()),
+        fit_material_scale(quadratic, counts),
+    )
 
 
 def design_correlation(bank: GPBank, design: np.ndarray) -> np.ndarray:

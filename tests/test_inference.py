@@ -61,11 +61,17 @@ def test_density_of_a_non_finite_point_is_non_finite_not_an_error(emulator, data
     assert not torch.isfinite(post.log_density(u))
 
 
-def test_closed_form_density_equals_autograd(emulator, data):
+@pytest.mark.parametrize("noise", ["halfcauchy", "known"])
+def test_closed_form_density_equals_autograd(emulator, data, noise):
+    """With the emulator scale sampled (the fixture's emulator has one) and either noise model."""
+    from inference.coverage import noisy
     from inference.density import FusedLogDensity
 
     obs = from_dataset(data, 1, designs=[0, 3], frames=[-3, -1])
-    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance="mode")
+    if noise == "known":
+        obs = noisy(obs, 2e-3, seed=0)
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), noise=noise, gp_variance="mode")
+    assert post.names[-1] == "emulator_scale" and post.dim == 5 + post.n_sigma + 1
     post.fix_gp_variance(data.params[2])
     fused = FusedLogDensity(post)
     rng = np.random.default_rng(2)
