@@ -31,7 +31,7 @@ def make_paper_posterior(emulator, observed):
     from inference.model import SkinPosterior
 
     class SklearnLikelihood(SkinPosterior):
-        def log_likelihood(self, params, sigma):
+        def log_likelihood(self, params, sigma, scale=1.0):  # no emulator error: scale is 1
             x = np.concatenate(
                 [np.repeat(params.detach().numpy()[None], len(self.design_inputs), 0), self.design_inputs.numpy()], 1
             )

@@ -312,7 +312,9 @@ class SkinPosterior:
         return self.emulator.predict_joint(x)
 
     def noise_variance(self, sigma: torch.Tensor) -> torch.Tensor:
-        """Observation-noise variance (n_obs, G) of every weight."""
+        """Observation-noise variance (n_obs, G) of every weight from sigma (n_sigma,)."""
+        if sigma.shape[-1] != self.n_sigma:
+            raise ValueError(f"expected {self.n_sigma} noise sigmas, got {sigma.shape[-1]} (see SkinPosterior.latents)")
         if self.noise == "known":
             return self.noise_var
         return (sigma[self.component_of_weight] ** 2).expand(self.weights.shape)
@@ -457,13 +459,25 @@ class SkinPosterior:
             "ratio_95": float(np.percentile(ratios, 95)),
         }
 
-    def model_warnings(self) -> list[str]:
-        """What the summary must say about the model itself: an emulator without a held-out excess."""
+    def model_warnings(self, scale_median: float | None = None) -> list[str]:
+        """What the summary must say about the model itself: an emulator without a held-out
+        excess, or observations it fits far worse than its held-out materials (the posterior
+        median of the emulator scale, ``scale_median``, beyond its prior's 99 % quantile)."""
         if self.emulator_error and self.emulator.held_out_excess is None:
             return [
                 "this emulator has no held-out error model (fitted before skinid measured it): its error "
                 "beyond the GP variance is not in these intervals; refit it with 'skinid surrogate fit'"
             ]
+        if self.scale_prior and scale_median is not None:
+            a, b = self.scale_prior
+            limit = float(invgamma(a, scale=b).ppf(0.99))
+            if scale_median > limit:
+                return [
+                    f"the emulator scale is {scale_median:.3g} (its prior's 99 % quantile: {limit:.3g}): the "
+                    "emulator fits these observations far worse than any held-out material, and the intervals "
+                    "widen for it; check the measurement's frame, units and strain measure, and whether the "
+                    "model lacks physics ('skinid check')"
+                ]
         return []
 
     def error_budget(self, values: np.ndarray) -> ErrorBudget:

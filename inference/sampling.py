@@ -732,7 +732,7 @@ def sample_posterior(
         samples.gp_variance_spread = posterior.gp_variance_spread(samples.draws[..., :5].reshape(-1, 5))
     medians = np.median(samples.draws.reshape(-1, posterior.dim), axis=0)
     samples.error_budget, samples.error_budget_at = posterior.error_budget(medians), medians[:5]
-    samples.model_warnings = tuple(posterior.model_warnings())
+    samples.model_warnings = tuple(posterior.model_warnings(medians[-1] if posterior.scale_prior else None))
     return samples
 
 

@@ -9,6 +9,7 @@ alpha11 = 0.05 and frames t >= 0.5, so the emulator's training range of alpha11 
 import numpy as np
 import pytest
 import torch
+from scipy.stats import invgamma
 
 from inference.__main__ import main
 from inference.model import ObservedWeights, SkinPosterior, pyro_model
@@ -123,7 +124,7 @@ def test_per_datum_log_likelihood_sums_to_the_models_likelihood(run, known_run):
         terms = dt["log_likelihood"]["weights"].values
         for c, d in [(0, 0), (0, 57), (1, 99)]:
             values = torch.as_tensor(draws[c, d])
-            expected = float(post.log_likelihood(values[:5], values[5:]))
+            expected = float(post.log_likelihood(*post.latents(values)))
             assert terms[c, d].sum() == pytest.approx(expected, rel=1e-10)
             sites = {n: values[k] for k, n in enumerate(post.names)}
             trace = poutine.trace(poutine.condition(pyro_model, data=sites)).get_trace(post)
@@ -167,6 +168,9 @@ def test_prior_draws_follow_the_prior(run):
         assert x.mean() == pytest.approx((lo + hi) / 2, abs=0.06 * (hi - lo))  # uniform: sd of the mean 0.009
     sigma = dt["prior"]["sigma_xx"].values.ravel()
     assert sigma.min() > 0 and np.median(sigma) == pytest.approx(post.noise_scale, rel=0.15)  # HalfCauchy median
+    scale = dt["prior"]["emulator_scale"].values.ravel()  # InverseGamma(a, a - 1): mean 1 when a > 1
+    a, b = post.scale_prior
+    assert b == pytest.approx(a - 1) and np.median(scale) == pytest.approx(invgamma(a, scale=b).median(), rel=0.15)
 
 
 def test_known_noise_and_fixed_gp_variance_are_recorded(known_run):
@@ -180,7 +184,7 @@ def test_known_noise_and_fixed_gp_variance_are_recorded(known_run):
     )
     assert dt.attrs["emulator_error"] == "on"
     np.testing.assert_allclose(constant["stated_sd"], [[1e-4, 2e-4, 1e-4]])
-    assert set(dt["posterior"].data_vars) == set(PARAM_NAMES)
+    assert set(dt["posterior"].data_vars) == {*PARAM_NAMES, "emulator_scale"}  # no noise sigma
     assert dt.attrs["noise"] == "known" and dt.attrs["gp_variance"] == "mode"
 
 
