@@ -1,7 +1,7 @@
 """Coverage of the posterior intervals on held-out materials, per observation setup and noise.
 
     python benchmarks/coverage.py --emulator EMU --data TEST.h5 [--setups single frames membranes]
-        [--noise-sd 0 0.002] [--emulator-error on off] [--store out/coverage] [--starts 1]
+        [--noise-sd 0 0.002] [--emulator-error on scaled off] [--store out/coverage] [--starts 1]
         [--results benchmarks/results/coverage_fresh]
 
 For every setup x noise sd x error model, ``inference.coverage.coverage_study`` runs every case
@@ -36,7 +36,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset of test materials")
     parser.add_argument("--setups", nargs="+", default=["single", "frames", "membranes"])
     parser.add_argument("--noise-sd", type=float, nargs="+", default=[0.0])
-    parser.add_argument("--emulator-error", nargs="+", choices=["on", "off"], default=["on"])
+    parser.add_argument("--emulator-error", nargs="+", choices=["on", "scaled", "off"], default=["on"])
     parser.add_argument("--store", type=Path, default=Path("out/coverage"))
     parser.add_argument(
         "--materials",
@@ -51,7 +51,14 @@ def main() -> None:
     args.results.mkdir(exist_ok=True)
     for error in args.emulator_error:
         settings = SamplerSettings(
-            chains=2, warmup=300, draws=500, n_jobs=1, gp_variance="mode", progress=False, emulator_error=error == "on"
+            chains=2,
+            warmup=300,
+            draws=500,
+            n_jobs=1,
+            gp_variance="mode",
+            progress=False,
+            emulator_error=error != "off",
+            emulator_scale=error == "scaled",
         )
         for sd in args.noise_sd:
             for setup in args.setups:
@@ -86,7 +93,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         **summary.to_json(),
         **timing,
         "emulator": str(args.emulator),
-        "material_scale": material_scale(emulator) if settings.emulator_error else None,
+        "material_scale": material_scale(emulator) if settings.emulator_scale else None,
         "data": str(args.data),
         "starts_per_material": args.starts,
     }

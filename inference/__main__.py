@@ -29,10 +29,10 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--emulator-error",
-        choices=["on", "off"],
+        choices=["on", "scaled", "off"],
         default="on",
-        help="carry the emulator's held-out error and PCA truncation in the likelihood (on), "
-        "or the GP variance only (off)",
+        help="carry the emulator's held-out error and PCA truncation in the likelihood (on), that "
+        "error times a sampled material scale (scaled), or the GP variance only (off)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -430,7 +430,8 @@ def settings_of(args):
         n_jobs=args.jobs,
         gp_variance=args.gp_variance,
         progress=not args.quiet,
-        emulator_error=args.emulator_error == "on",
+        emulator_error=args.emulator_error != "off",
+        emulator_scale=args.emulator_error == "scaled",
     )
 
 

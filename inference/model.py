@@ -11,9 +11,11 @@ observations, and, when ``emulator_error`` is on (default), the emulator's error
 (:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, scaled by each
 observation's load s_o = |alpha_o t_o| / |alpha t|_max and correlated between observations as
 R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection picks up; and
-lambda, the material scale of that emulator error, lambda ~ InverseGamma(a, b) fitted on the
-held-out materials (:func:`surrogate.error_model.fit_material_scale`), sampled as
-``emulator_scale`` (fixed at 1 when emulator_error is off or the emulator predates it).
+lambda, the material scale of that emulator error, lambda ~ InverseGamma(a, a - 1) fitted on
+the held-out materials (:func:`surrogate.error_model.fit_material_scale`), sampled as
+``emulator_scale`` when ``emulator_scale`` is on (off by default: lambda = 1; on the fresh
+``small`` materials it calibrates the 50 % intervals of a few frames but makes those of θ from
+three membranes over-confident, docs/inference.md).
 Weights g are independent, as the GPs are. S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
@@ -210,6 +212,8 @@ class SkinPosterior:
         gp_variance: "mode" (fixed at the posterior mode, see module doc) or "exact".
         emulator_error: carry the held-out excess and the PCA truncation (module doc); off:
             the GP's own covariance only.
+        emulator_scale: sample the material scale lambda of that error (module doc); needs
+            ``emulator_error`` and an emulator that has fitted it.
     """
 
     def __init__(
@@ -220,6 +224,7 @@ class SkinPosterior:
         noise_scale: float = 1.0,
         gp_variance: str = "exact",
         emulator_error: bool = True,
+        emulator_scale: bool = False,
     ):
         if noise not in ("halfcauchy", "known"):
             raise ValueError(f"noise must be 'halfcauchy' or 'known', got '{noise}'")
@@ -246,7 +251,12 @@ class SkinPosterior:
         self.noise_var = None if observed.noise_var is None else torch.as_tensor(observed.noise_var)
         self.excess_cov, self.truncation_var = self._emulator_error_terms()
         excess = emulator.held_out_excess
-        self.scale_prior = excess.material_scale if emulator_error and excess is not None else None
+        self.scale_prior = excess.material_scale if emulator_error and emulator_scale and excess else None
+        if emulator_scale and self.scale_prior is None:
+            raise ValueError(
+                "the emulator scale needs the emulator's error model (emulator_error on) and an emulator "
+                "that fitted its material scale: refit it with 'skinid surrogate fit'"
+            )
         self.fixed_gp_cov: torch.Tensor | None = None
         self._density = None
 

@@ -399,7 +399,7 @@ def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, s
         "noise": posterior.noise,
         "noise_scale": posterior.noise_scale,
         "gp_variance": posterior.gp_variance,
-        "emulator_error": "on" if posterior.emulator_error else "off",
+        "emulator_error": "scaled" if posterior.scale_prior else "on" if posterior.emulator_error else "off",
     }
     prior = {"draws": f"{N_PRIOR_DRAWS} draws of inference.model.pyro_prior, seed {seed}"}
     return {"/": root, "prior": prior, **GROUP_ATTRS}

@@ -31,6 +31,7 @@ class SamplerSettings:
     gp_variance: str = "mode"
     progress: bool = True
     emulator_error: bool = True
+    emulator_scale: bool = False
 
 
 def sample_of(
@@ -43,6 +44,7 @@ def sample_of(
         noise=noise,
         gp_variance=settings.gp_variance,
         emulator_error=settings.emulator_error,
+        emulator_scale=settings.emulator_scale,
     )
     return sample_posterior(
         posterior,

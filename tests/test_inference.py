@@ -36,12 +36,14 @@ def data(small_dataset):
 
 
 # -- the density -----------------------------------------------------------------------------
-@pytest.mark.parametrize("gp_variance", ["exact", "mode"])
-def test_potential_equals_pyro_models_potential(emulator, data, gp_variance):
+@pytest.mark.parametrize("gp_variance, scaled", [("exact", False), ("mode", False), ("mode", True)])
+def test_potential_equals_pyro_models_potential(emulator, data, gp_variance, scaled):
     from pyro.infer.mcmc.util import initialize_model
 
     obs = from_dataset(data, 0, designs=[0, 2], frames=[-2, -1])
-    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance=gp_variance)
+    post = SkinPosterior(
+        emulator, ObservedWeights.project(emulator, obs), gp_variance=gp_variance, emulator_scale=scaled
+    )
     if gp_variance == "mode":
         post.fix_gp_variance(data.params[1])
     _, potential_fn, _, _ = initialize_model(pyro_model, model_args=(post,))
@@ -61,17 +63,19 @@ def test_density_of_a_non_finite_point_is_non_finite_not_an_error(emulator, data
     assert not torch.isfinite(post.log_density(u))
 
 
-@pytest.mark.parametrize("noise", ["halfcauchy", "known"])
-def test_closed_form_density_equals_autograd(emulator, data, noise):
-    """With the emulator scale sampled (the fixture's emulator has one) and either noise model."""
+@pytest.mark.parametrize("noise, scaled", [("halfcauchy", False), ("halfcauchy", True), ("known", True)])
+def test_closed_form_density_equals_autograd(emulator, data, noise, scaled):
+    """Either noise model, with and without the emulator scale sampled."""
     from inference.coverage import noisy
     from inference.density import FusedLogDensity
 
     obs = from_dataset(data, 1, designs=[0, 3], frames=[-3, -1])
     if noise == "known":
         obs = noisy(obs, 2e-3, seed=0)
-    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), noise=noise, gp_variance="mode")
-    assert post.names[-1] == "emulator_scale" and post.dim == 5 + post.n_sigma + 1
+    post = SkinPosterior(
+        emulator, ObservedWeights.project(emulator, obs), noise=noise, gp_variance="mode", emulator_scale=scaled
+    )
+    assert (post.names[-1] == "emulator_scale") == scaled and post.dim == 5 + post.n_sigma + scaled
     post.fix_gp_variance(data.params[2])
     fused = FusedLogDensity(post)
     rng = np.random.default_rng(2)
@@ -87,6 +91,23 @@ def test_closed_form_density_equals_autograd(emulator, data, noise):
     ut = torch.tensor(u, requires_grad=True)
     (g3,) = torch.autograd.grad(post.potential({"u": ut}), ut)
     np.testing.assert_allclose(g3.numpy(), -g2)
+
+
+def test_emulator_scale_flags_a_field_the_emulator_cannot_fit(emulator, data):
+    """The mixed design's last frame with E_xx and E_yy swapped (a misread export), stated noise
+    sd 1e-4: no material fits it, the sampled emulator scale grows beyond its prior's 99 %
+    quantile and the summary says so; the same field read correctly is not flagged."""
+    from inference.coverage import noisy
+    from inference.studies import SamplerSettings, sample_of
+
+    mixed = design_index(data.designs, (0.05, -0.05), data.path)
+    settings = SamplerSettings(chains=2, warmup=200, draws=200, n_jobs=1, progress=False, emulator_scale=True)
+    for swapped in (False, True):
+        obs = noisy(from_dataset(data, 1, designs=[mixed], frames=[-1]), 1e-4, seed=0)
+        if swapped:
+            obs[0].fields = obs[0].fields[:, [1, 0, 2]]
+        warnings = sample_of(emulator, obs, settings, noise="known").summary().warnings
+        assert any("emulator scale" in w for w in warnings) == swapped, (swapped, warnings)
 
 
 class LinearEmulator:
