@@ -8,12 +8,8 @@ frame and PC weight, the RMS of the standardised errors (error / predicted sd):
   excess of ``surrogate.error_model`` added;
 - by 5-fold cross-validation by material on TRAIN: with the fitted kernels kept (only the
   conditioning rows left out) and with the GPs refitted per fold (what the emulator does).
-A calibrated error model gives 1. Then the material scale lambda
-(``surrogate.error_model.fit_material_scale``): for each fresh material, its last frame from
-every design, the Mahalanobis form q = sum_g e_g^T C_g^-1 e_g (C_g: GP joint covariance plus
-the held-out excess, correlated between designs) against the quantiles of q that the Gaussian
-model (chi^2_n) and the scaled one (q ~ n (b / a) F(n, 2a)) predict.
-Results: benchmarks/results/emulator_error.json.
+A calibrated error model gives 1 (the spread of the error between materials:
+``benchmarks/material_scale.py``). Results: benchmarks/results/emulator_error.json.
 """
 
 from __future__ import annotations
@@ -32,40 +28,6 @@ def per_frame_z_rms(error: np.ndarray, variance: np.ndarray, frame: np.ndarray) 
     """(n_frames, G) RMS of error / sqrt(variance) over the rows of each frame."""
     z2 = error**2 / variance
     return [np.sqrt(z2[frame == k].mean(0)).round(3).tolist() for k in np.unique(frame)]
-
-
-def material_forms(emulator, rows, error: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """q_m and n_m (:func:`surrogate.error_model.material_quadratic_forms`) of each material's
-    last-frame rows, with the GP's joint covariance between them plus the held-out excess."""
-    excess = emulator.held_out_excess
-    last = np.flatnonzero(rows.index[:, 2] == rows.index[:, 2].max())
-    quadratic, counts = [], []
-    for m in np.unique(rows.index[last, 0]):
-        mine = last[rows.index[last, 0] == m]
-        design = rows.inputs[mine, 5:]
-        with torch.no_grad():
-            gp_cov = emulator.predict_joint(torch.as_tensor(rows.inputs[mine]))[1].numpy()
-        s = excess.load_scale(design)
-        cov = gp_cov + np.array(excess.variance)[:, None, None] * np.outer(s, s) * emulator.error_correlation(design)
-        resid = error[mine].T[..., None]
-        quadratic.append(float(np.sum(resid * np.linalg.solve(cov, resid))))
-        counts.append(resid.size)
-    return np.array(quadratic), np.array(counts)
-
-
-def scale_check(quadratic: np.ndarray, counts: np.ndarray, shape: float, rate: float) -> dict:
-    """Share of the materials below the 10/25/50/75/90 % quantiles of q under each model."""
-    from scipy.stats import chi2, f
-
-    levels = [0.1, 0.25, 0.5, 0.75, 0.9]
-    return {
-        "levels": levels,
-        "gaussian": [float(np.mean(quadratic < chi2.ppf(p, counts))) for p in levels],
-        "material_scale": [
-            float(np.mean(quadratic < counts * rate / shape * f.ppf(p, counts, 2 * shape))) for p in levels
-        ],
-        "q_over_n": np.round(quadratic / counts, 3).tolist(),
-    }
 
 
 def main() -> None:
@@ -97,7 +59,6 @@ def main() -> None:
         "gp_only": per_frame_z_rms(error, var, rows.index[:, 2]),
         "with_excess": per_frame_z_rms(error, var + tau2, rows.index[:, 2]),
     }
-    results["fresh_materials_scale"] = scale_check(*material_forms(emulator, rows, error), *excess.material_scale)
 
     train_rows = TrainingRows.from_dataset(train, np.flatnonzero(train.split == 0))
     x = emulator.scale(train_rows.inputs)
@@ -130,7 +91,7 @@ def main() -> None:
             emulator.error_correlation,
         ).to_json()
     (HERE / "results" / "emulator_error.json").write_text(json.dumps(results, indent=2) + "\n")
-    for key in ("fresh_materials", "fresh_materials_scale", "cv_kernels_kept", "cv_refitted"):
+    for key in ("fresh_materials", "cv_kernels_kept", "cv_refitted"):
         print(key, json.dumps(results[key])[:300])
 
 
