@@ -437,12 +437,12 @@ def settings_of(args):
 
 def print_summary(summary, out: Path) -> None:
     """The table of an :class:`inference.sampling.PosteriorSummary`, its warnings and error budget."""
-    print(f"{'':>8} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
+    width = max(map(len, summary.parameters))
+    print(f"{'':>{width}} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
     for name, e in summary.parameters.items():
         true = "" if e.true is None else f"{e.true:.4g}"
-        print(
-            f"{name:>8} {e.median:>10.4g} [{e.q2_5:>10.4g}, {e.q97_5:>10.4g}] {e.r_hat:>6.3f} {e.ess:>6.0f} {true:>10}"
-        )
+        interval = f"[{e.q2_5:>10.4g}, {e.q97_5:>10.4g}]"
+        print(f"{name:>{width}} {e.median:>10.4g} {interval} {e.r_hat:>6.3f} {e.ess:>6.0f} {true:>10}")
     for w in summary.warnings:
         print(f"warning: {w}")
     if summary.error_budget_statement:

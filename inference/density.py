@@ -41,7 +41,8 @@ class FusedLogDensity:
         self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
         self.lower, self.span = posterior.lower.numpy(), posterior.span.numpy()
         self.design = posterior.design_inputs.numpy()
-        self.rotation, self.fixed_var, self.log_det_noise = posterior.fixed_eigen()  # (G, n_obs, n_obs), (n_obs, G)
+        # W (G, n_obs, n_obs), e (n_obs, G), log det of the known noise (0 with HalfCauchy noise)
+        self.rotation, self.fixed_var, self.log_det_noise = posterior.fixed_eigen()
         self.weights = self.rotate(posterior.weights.numpy())
         self.component = posterior.component_of_weight.numpy()
         self.n_comp = len(emu.components)
@@ -51,7 +52,7 @@ class FusedLogDensity:
         self.scale_prior = posterior.scale_prior
 
     def rotate(self, a: np.ndarray) -> np.ndarray:
-        """Q_g^T a_g for every weight g: a (n_obs, G, ...) -> (n_obs, G, ...)."""
+        """W_g^T a_g for every weight g: a (n_obs, G, ...) -> (n_obs, G, ...)."""
         return np.einsum("gpo,pg...->og...", self.rotation, a)
 
     def gp_mean(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -288,6 +288,8 @@ class SkinPosterior:
 
     def latents(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Constrained (dim,) -> params (5,), sigma (n_sigma,), emulator scale lambda (scalar, 1 if fixed)."""
+        if values.shape[-1] != self.dim:
+            raise ValueError(f"expected {self.dim} values ({', '.join(self.names)}), got {values.shape[-1]}")
         scale = values[-1] if self.scale_prior else torch.ones((), dtype=values.dtype)
         return values[:5], values[5 : 5 + self.n_sigma], scale
 

@@ -63,7 +63,9 @@ def test_density_of_a_non_finite_point_is_non_finite_not_an_error(emulator, data
     assert not torch.isfinite(post.log_density(u))
 
 
-@pytest.mark.parametrize("noise, scaled", [("halfcauchy", False), ("halfcauchy", True), ("known", True)])
+@pytest.mark.parametrize(
+    "noise, scaled", [("halfcauchy", False), ("halfcauchy", True), ("known", False), ("known", True)]
+)
 def test_closed_form_density_equals_autograd(emulator, data, noise, scaled):
     """Either noise model, with and without the emulator scale sampled."""
     from inference.coverage import noisy
