@@ -8,7 +8,9 @@ whitened at the true parameters by the likelihood's covariance (GP + held-out ex
 truncation, ``inference.model.SkinPosterior``, noise-free): under the model each whitened weight
 is a standard normal, so the sum of squares q of one material is chi^2 with n = weights; under
 the material scale (lambda ~ InverseGamma(a, a - 1)) q / n / (b / a) is F(n, 2a). Writes the
-quantiles of q over materials next to both models' (benchmarks/results/material_scale.json).
+quantiles of q over materials next to both models' (benchmarks/results/material_scale.json),
+and, per PC weight, the correlation of the errors between two designs of one material over the
+materials against the one the likelihood assumes (mean over the pairs of designs).
 """
 
 from __future__ import annotations
@@ -35,6 +37,34 @@ def whitened(emulator, data, material: int, designs: list[int]) -> np.ndarray:
     sigma = torch.full((posterior.n_sigma,), 1e-8, dtype=torch.float64)  # noise-free data
     white, _ = posterior.whitened_residuals(torch.as_tensor(observed.truth), sigma)
     return white.numpy().ravel()
+
+
+def standardised_errors(emulator, data, material: int, designs: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Errors / model sd (n_obs, G) of one material's last frames at its truth, and the model's
+    correlation between the observations (G, n_obs, n_obs) (noise-free)."""
+    from inference.model import ObservedWeights, SkinPosterior
+    from inference.observations import from_dataset
+
+    observed = ObservedWeights.project(emulator, from_dataset(data, material, designs, [-1]))
+    posterior = SkinPosterior(emulator, observed)
+    with torch.no_grad():
+        mean, gp_cov = posterior.gp_moments(torch.as_tensor(observed.truth))
+        cov = posterior.model_covariance(gp_cov).numpy()
+    sd = np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1))  # (G, n_obs)
+    return (observed.weights - mean.numpy()) / sd.T, cov / sd[:, :, None] / sd[:, None, :]
+
+
+def design_correlations(emulator, data, materials: list[int]) -> dict:
+    """Per PC weight: mean over design pairs of the errors' correlation over materials, and of the
+    likelihood's (median over materials)."""
+    designs = list(range(len(data.designs)))
+    pairs = [standardised_errors(emulator, data, i, designs) for i in materials]
+    z = np.stack([p[0] for p in pairs])  # (M, n_obs, G)
+    model = np.median(np.stack([p[1] for p in pairs]), axis=0)  # (G, n_obs, n_obs)
+    upper = np.triu_indices(len(designs), 1)
+    measured = [float(np.corrcoef(z[:, :, g].T)[upper].mean()) for g in range(z.shape[2])]
+    assumed = [float(model[g][upper].mean()) for g in range(z.shape[2])]
+    return {"measured": measured, "assumed": assumed, "materials": len(materials)}
 
 
 def quantiles(q: np.ndarray, n: int, shape: float, rate: float) -> dict:
@@ -73,6 +103,7 @@ def main() -> None:
             "kurtosis": float(np.mean(white**4) / np.mean(white**2) ** 2),
             "median_abs": float(np.median(np.abs(white))),
         }
+    results["design_correlation"] = design_correlations(emulator, data, tests)
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 
