@@ -27,44 +27,43 @@ HERE = Path(__file__).resolve().parent
 LEVELS = [0.1, 0.25, 0.5, 0.75, 0.9]
 
 
-def whitened(emulator, data, material: int, designs: list[int]) -> np.ndarray:
-    """(n_obs * G,) whitened PC weights of one material's last frames at its true parameters."""
+def at_truth(emulator, data, material: int, designs: list[int]):
+    """The noise-free likelihood of one material's last frames and its true parameters (5,)."""
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
 
     observed = ObservedWeights.project(emulator, from_dataset(data, material, designs, [-1]))
-    posterior = SkinPosterior(emulator, observed, noise="known" if observed.noise_var is not None else "halfcauchy")
-    sigma = torch.full((posterior.n_sigma,), 1e-8, dtype=torch.float64)  # noise-free data
-    white, _ = posterior.whitened_residuals(torch.as_tensor(observed.truth), sigma)
+    return SkinPosterior(emulator, observed), torch.as_tensor(observed.truth)
+
+
+def whitened(posterior, truth) -> np.ndarray:
+    """(n_obs * G,) whitened PC weights at the truth (noise sigma ~0: noise-free data)."""
+    sigma = torch.full((posterior.n_sigma,), 1e-8, dtype=torch.float64)
+    white, _ = posterior.whitened_residuals(truth, sigma)
     return white.numpy().ravel()
 
 
-def standardised_errors(emulator, data, material: int, designs: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Errors / model sd (n_obs, G) of one material's last frames at its truth, and the model's
-    correlation between the observations (G, n_obs, n_obs) (noise-free)."""
-    from inference.model import ObservedWeights, SkinPosterior
-    from inference.observations import from_dataset
-
-    observed = ObservedWeights.project(emulator, from_dataset(data, material, designs, [-1]))
-    posterior = SkinPosterior(emulator, observed)
+def standardised_errors(posterior, truth) -> tuple[np.ndarray, np.ndarray]:
+    """Errors / model sd (n_obs, G) at the truth, and the model's correlation between the
+    observations (G, n_obs, n_obs) (noise-free)."""
     with torch.no_grad():
-        mean, gp_cov = posterior.gp_moments(torch.as_tensor(observed.truth))
+        mean, gp_cov = posterior.gp_moments(truth)
         cov = posterior.model_covariance(gp_cov).numpy()
     sd = np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1))  # (G, n_obs)
-    return (observed.weights - mean.numpy()) / sd.T, cov / sd[:, :, None] / sd[:, None, :]
+    return (posterior.weights.numpy() - mean.numpy()) / sd.T, cov / sd[:, :, None] / sd[:, None, :]
 
 
-def design_correlations(emulator, data, materials: list[int]) -> dict:
+def design_correlations(likelihoods: list) -> dict:
     """Per PC weight: mean over design pairs of the errors' correlation over materials, and of the
-    likelihood's (median over materials)."""
-    designs = list(range(len(data.designs)))
-    pairs = [standardised_errors(emulator, data, i, designs) for i in materials]
+    likelihood's (median over materials); ``likelihoods``: (posterior, truth) of every material
+    observed from every design."""
+    pairs = [standardised_errors(*at) for at in likelihoods]
     z = np.stack([p[0] for p in pairs])  # (M, n_obs, G)
     model = np.median(np.stack([p[1] for p in pairs]), axis=0)  # (G, n_obs, n_obs)
-    upper = np.triu_indices(len(designs), 1)
+    upper = np.triu_indices(z.shape[1], 1)
     measured = [float(np.corrcoef(z[:, :, g].T)[upper].mean()) for g in range(z.shape[2])]
     assumed = [float(model[g][upper].mean()) for g in range(z.shape[2])]
-    return {"measured": measured, "assumed": assumed, "materials": len(materials)}
+    return {"measured": measured, "assumed": assumed, "materials": len(likelihoods)}
 
 
 def quantiles(q: np.ndarray, n: int, shape: float, rate: float) -> dict:
@@ -92,18 +91,20 @@ def main() -> None:
     tests = [int(i) for i in np.flatnonzero(data.split == 1)]
     n_designs = len(data.designs)
     results = {"emulator": str(args.emulator), "data": str(args.data), "material_scale": [shape, rate]}
+    likelihoods = {}
     for name, designs_of in (
         ("one_design", lambda i: [i % n_designs]),
         ("all_designs", lambda i: list(range(n_designs))),
     ):
-        white = np.stack([whitened(emulator, data, i, designs_of(i)) for i in tests])
+        likelihoods[name] = [at_truth(emulator, data, i, designs_of(i)) for i in tests]
+        white = np.stack([whitened(*at) for at in likelihoods[name]])
         results[name] = {
             **quantiles(np.sum(white**2, axis=1), white.shape[1], shape, rate),
             "materials": len(tests),
             "kurtosis": float(np.mean(white**4) / np.mean(white**2) ** 2),
             "median_abs": float(np.median(np.abs(white))),
         }
-    results["design_correlation"] = design_correlations(emulator, data, tests)
+    results["design_correlation"] = design_correlations(likelihoods["all_designs"])
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 

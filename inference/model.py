@@ -387,6 +387,11 @@ class SkinPosterior:
             log_prior = log_prior + self.scale_distribution(u.dtype).log_prob(torch.exp(u[..., -1]))
         return log_prior + log_jac
 
+    def scale_quantile(self, level: float) -> float:
+        """Quantile of the emulator scale's prior at ``level`` in (0, 1)."""
+        a, b = self.scale_prior
+        return float(invgamma(a, scale=b).ppf(level))
+
     def scale_distribution(self, dtype: torch.dtype = torch.float64) -> dist.InverseGamma:
         """The prior of the emulator scale lambda: InverseGamma(a, b) of the emulator's error model."""
         a, b = self.scale_prior
@@ -435,10 +440,7 @@ class SkinPosterior:
         """Unconstrained start of the positive latents (dim - 5,): log of :meth:`initial_sigma`
         and of the emulator scale's prior median."""
         sigma = np.log(self.initial_sigma()) if self.n_sigma else np.zeros(0)
-        if not self.scale_prior:
-            return sigma
-        a, b = self.scale_prior
-        return np.append(sigma, np.log(invgamma(a, scale=b).median()))
+        return np.append(sigma, np.log(self.scale_quantile(0.5))) if self.scale_prior else sigma
 
     def initial_sigma(self) -> np.ndarray:
         """A data-driven starting noise level per component: RMS of the observed weights / 10."""
@@ -481,8 +483,7 @@ class SkinPosterior:
                 "beyond the GP variance is not in these intervals; refit it with 'skinid surrogate fit'"
             ]
         if self.scale_prior and scale_median is not None:
-            a, b = self.scale_prior
-            limit = float(invgamma(a, scale=b).ppf(0.99))
+            limit = self.scale_quantile(0.99)
             if scale_median > limit:
                 return [
                     f"the emulator scale is {scale_median:.3g} (its prior's 99 % quantile: {limit:.3g}): the "
