@@ -517,6 +517,11 @@ CASES = {
         "meta.json' is not valid JSON",
         emulator(meta("{not json")),
     ),
+    "infer-scaled-with-an-emulator-fitted-before-the-material-scale": (  # a ValueError, not checked before
+        f"{INFER_DATA} --emulator-error scaled".replace("{emu}", "{tmp}/emu"),
+        "an emulator that fitted its material scale: refit it with 'skinid surrogate fit'",
+        emulator(meta(lambda e: e["held_out_excess"].pop("material_scale"))),
+    ),
     "emulator-other-format": (
         "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
         "is not a skinid emulator",
