@@ -1,6 +1,6 @@
 """Is one material's emulator error the average one? Whitened errors at the truth, per material.
 
-    python benchmarks/material_scale.py --emulator EMU --data FRESH.h5 [--results FILE]
+    python benchmarks/material_scale.py --emulator EMU --data FRESH.h5 --train-data TRAIN.h5 [--results FILE]
 
 For every test material of FRESH.h5, the last frame of one design (material i: design i mod n,
 as ``skinid study coverage --starts 1``) and of all designs, projected on the emulator's PCs and
@@ -11,28 +11,47 @@ the material scale (lambda ~ InverseGamma(a, a - 1)) q / n / (b / a) is F(n, 2a)
 quantiles of q over materials next to both models' (benchmarks/results/material_scale.json),
 and, per PC weight, the correlation of the errors between two designs of one material over the
 materials against the one the likelihood assumes (mean over the pairs of designs).
+
+``linearised``: the coverage study's cases with more weights than parameters (``frames``,
+``membranes``, one starting design per material as ``--starts 1``) and every design's last frame
+(``all_designs``) or last three frames (``all_designs_3_frames``), linearised at the truth. The
+whitened error e (n,) moves the estimate by delta = (J^T J)^-1 J^T e (J the whitened Jacobian of
+the emulator mean in the parameters); under the model delta_k / sd_k is a standard normal
+(lambda = 1), and with the material scale the marginal of a parameter is Student-t with
+nu = 2a + n - 5 and scale^2 = sd_k^2 b' / a' (lambda's posterior InverseGamma(a + (n - 5) / 2,
+b + |e - J delta|^2 / 2)). Recorded per parameter: the coverage of those linearised 50 % / 95 %
+intervals (flat prior, box bounds ignored) under both, mean z^2, and the share of |e|^2 the
+parameters absorb against the p / n an isotropic error would give.
+
+``parameter_shift``: the same decomposition of each training material's error over all its rows,
+predicted by the emulator's cross-validation folds (GPs refitted without it, TRAIN.h5 the data
+the emulator was fitted on): the covariance C of those shifts and the residual's level relative
+to the likelihood's variance. The linearised coverage's ``shift`` entries use the posterior
+covariance level * (J^T J)^-1 + C of a likelihood that carried the shift.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.stats import chi2, f
+from scipy.stats import chi2, f, norm, t
 
 HERE = Path(__file__).resolve().parent
 LEVELS = [0.1, 0.25, 0.5, 0.75, 0.9]
 
 
-def at_truth(emulator, data, material: int, designs: list[int]):
-    """The noise-free likelihood of one material's last frames and its true parameters (5,)."""
+def at_truth(emulator, data, material: int, designs: list[int], frames: tuple[int, ...] = (-1,)):
+    """The noise-free likelihood of one material's frames (default: the last) and its true
+    parameters (5,)."""
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
 
-    observed = ObservedWeights.project(emulator, from_dataset(data, material, designs, [-1]))
+    observed = ObservedWeights.project(emulator, from_dataset(data, material, designs, list(frames)))
     return SkinPosterior(emulator, observed), torch.as_tensor(observed.truth)
 
 
@@ -66,6 +85,120 @@ def design_correlations(likelihoods: list) -> dict:
     return {"measured": measured, "assumed": assumed, "materials": len(likelihoods)}
 
 
+@dataclass(frozen=True)
+class LinearisedFit:
+    """The estimate's shift by the emulator error at the truth, linearised (physical units)."""
+
+    delta: np.ndarray  # (5,) shift of the estimate
+    cov: np.ndarray  # (5, 5) (J^T J)^-1, the likelihood's covariance of the estimate at lambda = 1
+    residual: float  # |e - J delta|^2 left after the shift [-]
+    absorbed: float  # share of |e|^2 the parameters absorb [-]
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.delta / np.sqrt(np.diag(self.cov))
+
+
+def whitened_least_squares(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """delta, (J^T J)^-1, |e - J delta|^2 and the absorbed share for whitened e (n,), J (n, 5)."""
+    cov = np.linalg.inv(jacobian.T @ jacobian)
+    delta = cov @ jacobian.T @ error
+    residual = error - jacobian @ delta
+    return delta, cov, float(residual @ residual), float(1 - residual @ residual / (error @ error))
+
+
+def linearised_fit(posterior, truth) -> LinearisedFit:
+    """The shift of one case's estimate, whitened by the likelihood's covariance (lambda = 1)."""
+    with torch.no_grad():
+        mean, gp_cov = posterior.gp_moments(truth)
+        chol = torch.linalg.cholesky(posterior.model_covariance(gp_cov)).numpy()  # (G, n_obs, n_obs)
+    jac = torch.autograd.functional.jacobian(lambda p: posterior.gp_moments(p)[0], truth).numpy()
+    error = posterior.weights.numpy() - mean.numpy()  # (n_obs, G)
+    e = np.concatenate([np.linalg.solve(chol[g], error[:, g]) for g in range(len(chol))])
+    jw = np.concatenate([np.linalg.solve(chol[g], jac[:, g, :]) for g in range(len(chol))])
+    return LinearisedFit(*whitened_least_squares(e, jw))
+
+
+def material_shift(bank, x: np.ndarray, weights: np.ndarray, excess: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """(delta (5,) in the unit box, residual, absorbed share) of one left-out material's rows:
+    unit inputs x (k, 7), weights (k, G), held-out excess variance (k, G) added to the GP's."""
+    xt = torch.tensor(x, dtype=torch.float64, requires_grad=True)
+    mean, var = bank(xt)
+    jac = torch.stack(
+        [torch.autograd.grad(mean[:, g].sum(), xt, retain_graph=True)[0][:, :5] for g in range(mean.shape[1])], 1
+    ).numpy()  # (k, G, 5): row b's mean depends on row b's inputs only
+    sd = np.sqrt(var.detach().numpy() + excess)
+    error = (weights - mean.detach().numpy()) / sd
+    delta, _, residual, absorbed = whitened_least_squares(error.ravel(), (jac / sd[..., None]).reshape(-1, 5))
+    return delta, residual, absorbed
+
+
+def cross_validated_shifts(emulator, train_data) -> dict:
+    """Each training material's error as a parameter shift, from the emulator's cross-validation
+    folds (GPs refitted without it, as the held-out excess): shift covariance and residual level."""
+    from surrogate.emulator import TrainingRows, fold_refit, gp_rows
+    from surrogate.error_model import material_folds
+
+    prov, excess = emulator.provenance, emulator.held_out_excess
+    rows = TrainingRows.from_dataset(train_data, np.array(prov.train_materials))
+    weights = emulator.weights_of_fields(emulator.dataset_fields(rows.fields))
+    x = emulator.scale(rows.inputs)
+    subset = gp_rows(len(rows.index), prov.gp_fraction, prov.n_gp_rows, prov.seed)
+    scale2 = excess.load_scale(rows.inputs[:, 5:])[:, None] ** 2 * np.array(excess.variance)
+    materials, fit = rows.index[:, 0], fold_refit(emulator.sklearn_gps, prov.seed)
+    shifts = []
+    for fold in material_folds(materials, excess.folds, prov.seed):
+        keep = subset[~np.isin(materials[subset], fold)]
+        bank = fit(x[keep], weights[keep])
+        shifts += [
+            material_shift(bank, x[materials == m], weights[materials == m], scale2[materials == m]) for m in fold
+        ]
+    delta = np.stack([d for d, _, _ in shifts])
+    dof = (materials == materials[0]).sum() * weights.shape[1] - 5
+    return {
+        "covariance_unit_box": (delta.T @ delta / len(delta)).tolist(),
+        "sd_unit_box": np.sqrt(np.mean(delta**2, axis=0)).round(4).tolist(),
+        "residual_level": float(np.mean([r for _, r, _ in shifts]) / dof),
+        "absorbed_share": float(np.mean([a for _, _, a in shifts])),
+        "materials": len(delta),
+    }
+
+
+def linearised_coverage(fits: list[LinearisedFit], n: int, shape: float, rate: float, shift: dict) -> dict:
+    """Coverage of the linearised intervals over the materials' fits: the likelihood's (fixed),
+    with the material scale (scaled), and with the shift model (shift: covariance ``C`` of the
+    parameters' shift, physical units, plus the likelihood's at the residual level)."""
+    z = np.stack([fit.z for fit in fits])  # (M, 5)
+    residual = np.array([fit.residual for fit in fits])
+    dof = n - z.shape[1]
+    nu = 2 * shape + dof
+    spread = np.sqrt((rate + residual / 2) / (shape + dof / 2))[:, None]  # sqrt(b' / a')
+    var = np.stack([np.diag(fit.cov) for fit in fits])
+    z_shift = np.stack([fit.delta for fit in fits]) / np.sqrt(shift["level"] * var + np.diag(shift["C"]))
+
+    def covered(level: float) -> dict:
+        q = (1 + level) / 2
+        return {
+            "fixed": np.mean(np.abs(z) < norm.ppf(q), axis=0).round(3).tolist(),
+            "scaled": np.mean(np.abs(z) / spread < t.ppf(q, nu), axis=0).round(3).tolist(),
+            "shift": np.mean(np.abs(z_shift) < norm.ppf(q), axis=0).round(3).tolist(),
+        }
+
+    return {
+        "n_weights": n,
+        "materials": len(fits),
+        "coverage_50": covered(0.5),
+        "coverage_95": covered(0.95),
+        "mean_z2": {
+            "fixed": np.mean(z**2, axis=0).round(3).tolist(),
+            "shift": np.mean(z_shift**2, 0).round(3).tolist(),
+        },
+        "absorbed_share": float(np.mean([fit.absorbed for fit in fits])),
+        "isotropic_share": z.shape[1] / n,
+        "lambda_posterior_median": float(np.median(spread**2)),
+    }
+
+
 def quantiles(q: np.ndarray, n: int, shape: float, rate: float) -> dict:
     """Quantiles of the sums of squares q (materials,) of n weights, and of both models' q."""
     return {
@@ -78,12 +211,15 @@ def quantiles(q: np.ndarray, n: int, shape: float, rate: float) -> dict:
 
 
 def main() -> None:
+    from inference.coverage import cases_of
+    from skinfem.config import PARAM_NAMES
     from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--emulator", type=Path, required=True)
     parser.add_argument("--data", type=Path, required=True, help="dataset of fresh test materials")
+    parser.add_argument("--train-data", type=Path, required=True, help="the dataset the emulator was fitted on")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "material_scale.json")
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
@@ -105,6 +241,22 @@ def main() -> None:
             "median_abs": float(np.median(np.abs(white))),
         }
     results["design_correlation"] = design_correlations(likelihoods["all_designs"])
+    shifts = cross_validated_shifts(emulator, StrainDataset.open(args.train_data))
+    span = emulator.upper[:5] - emulator.lower[:5]
+    shift = {"C": np.array(shifts["covariance_unit_box"]) * np.outer(span, span), "level": shifts["residual_level"]}
+    results["parameter_shift"] = shifts
+    results["linearised"] = {"parameters": list(PARAM_NAMES)}
+    every_design = list(range(n_designs))
+    setups = {
+        setup: [(c.material, list(c.designs), c.frames) for c in cases_of(data, setup, starts=1)]
+        for setup in ("frames", "membranes")
+    }
+    setups["all_designs"] = [(i, every_design, (-1,)) for i in tests]
+    setups["all_designs_3_frames"] = [(i, every_design, (-3, -2, -1)) for i in tests]
+    for setup, cases in setups.items():
+        at = [at_truth(emulator, data, *case) for case in cases]
+        n = at[0][0].weights.numel()
+        results["linearised"][setup] = linearised_coverage([linearised_fit(*a) for a in at], n, shape, rate, shift)
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 

@@ -24,6 +24,7 @@ import json
 import time
 import tomllib
 import zipfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from importlib import metadata
 from pathlib import Path
@@ -382,6 +383,13 @@ def gp_rows(n_rows: int, gp_fraction: float, max_gp_rows: int | None, seed: int)
     return np.sort(np.random.default_rng(seed).choice(n_rows, n_gp, replace=False))
 
 
+def fold_refit(gps: list, seed: int = 0, n_jobs: int = 1) -> Callable[[np.ndarray, np.ndarray], GPBank]:
+    """Fits a GP bank to unit-box inputs (n, 7) and targets (n, G) from the fitted kernels of
+    ``gps``, without restarts: a cross-validation fold's GPs."""
+    kernels = [g.gp.kernel_ for g in gps]
+    return lambda x, y: GPBank.from_sklearn(fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs, kernels=kernels))
+
+
 def _cross_validated_excess(
     gps: list,
     rows: TrainingRows,
@@ -397,9 +405,7 @@ def _cross_validated_excess(
     lower, upper = box
     bank = GPBank.from_sklearn(gps)
     return cross_validated_excess(
-        lambda x, y: GPBank.from_sklearn(
-            fit_gps(x, y, restarts=0, seed=seed, n_jobs=n_jobs, kernels=[g.gp.kernel_ for g in gps])
-        ),
+        fold_refit(gps, seed, n_jobs),
         (rows.inputs - lower) / (upper - lower),
         weights,
         rows.index[:, 0],

@@ -163,6 +163,14 @@ def material_quadratic_forms(
     return np.array(quadratic), np.array(counts)
 
 
+def material_folds(materials: np.ndarray, folds: int = FOLDS, seed: int = 0) -> list[np.ndarray]:
+    """The seeded split of the distinct ``materials`` (n,) into ``folds`` groups (each a left-out fold)."""
+    names = np.random.default_rng(seed).permutation(np.unique(materials))
+    if len(names) < folds:
+        raise ValueError(f"cross-validation by material needs >= {folds} training materials, got {len(names)}")
+    return np.array_split(names, folds)
+
+
 def cross_validated_errors(
     fit: Callable[[np.ndarray, np.ndarray], GPBank],
     x: np.ndarray,
@@ -181,11 +189,8 @@ def cross_validated_errors(
         materials: (n,) material index of each row.
         gp_subset: indices of the rows the emulator's GPs are fitted on.
     """
-    names = np.random.default_rng(seed).permutation(np.unique(materials))
-    if len(names) < folds:
-        raise ValueError(f"cross-validation by material needs >= {folds} training materials, got {len(names)}")
     error, variance = np.zeros_like(weights), np.zeros_like(weights)
-    for fold in np.array_split(names, folds):
+    for fold in material_folds(materials, folds, seed):
         keep = gp_subset[~np.isin(materials[gp_subset], fold)]
         fold_bank = fit(x[keep], weights[keep])
         test = np.flatnonzero(np.isin(materials, fold))
