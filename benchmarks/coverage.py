@@ -1,7 +1,7 @@
 """Coverage of the posterior intervals on held-out materials, per observation setup and noise.
 
     python benchmarks/coverage.py --emulator EMU --data TEST.h5 [--setups single frames membranes]
-        [--noise-sd 0 0.002] [--emulator-error on scaled off] [--store out/coverage] [--starts 1]
+        [--noise-sd 0 0.002] [--emulator-error on scaled shift off] [--n 3] [--store out/coverage] [--starts 1]
         [--results benchmarks/results/coverage_fresh]
 
 For every setup x noise sd x error model, ``inference.coverage.coverage_study`` runs every case
@@ -27,7 +27,7 @@ TIMING = ("cases_run", "seconds_per_case")
 
 
 def main() -> None:
-    from inference.studies import SamplerSettings
+    from inference.studies import EMULATOR_ERRORS, SamplerSettings, emulator_error_flags
     from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
 
@@ -36,7 +36,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset of test materials")
     parser.add_argument("--setups", nargs="+", default=["single", "frames", "membranes"])
     parser.add_argument("--noise-sd", type=float, nargs="+", default=[0.0])
-    parser.add_argument("--emulator-error", nargs="+", choices=["on", "scaled", "off"], default=["on"])
+    parser.add_argument("--emulator-error", nargs="+", choices=EMULATOR_ERRORS, default=["on"])
     parser.add_argument("--store", type=Path, default=Path("out/coverage"))
     parser.add_argument(
         "--materials",
@@ -44,6 +44,7 @@ def main() -> None:
         nargs="+",
         help="only these test materials (a second process can share a study's cases)",
     )
+    parser.add_argument("--n", type=int, default=3, help="frames or membranes observed (frames, membranes setups)")
     parser.add_argument("--starts", type=int, help="starting designs per material (default: all; 1: independent cases)")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the summaries and rank histograms")
     args = parser.parse_args()
@@ -57,12 +58,12 @@ def main() -> None:
             n_jobs=1,
             gp_variance="mode",
             progress=False,
-            emulator_error=error != "off",
-            emulator_scale=error == "scaled",
+            **emulator_error_flags(error),
         )
         for sd in args.noise_sd:
             for setup in args.setups:
-                label = f"{setup}_noise{sd:g}_error-{error}"
+                count = "" if args.n == 3 or setup == "single" else str(args.n)
+                label = f"{setup}{count}_noise{sd:g}_error-{error}"
                 summary = run_study(args, emulator, data, setup, settings, sd, label)
                 print(label, {n: (e.coverage_50, e.coverage_95) for n, e in summary.parameters.items()}, flush=True)
 
@@ -82,7 +83,15 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
     done_before = len(list(cases.glob("*.json"))) if cases.exists() else 0
     start = time.perf_counter()
     summary = coverage_study(
-        emulator, data, setup, settings, args.store / label, noise_sd=sd, materials=args.materials, starts=args.starts
+        emulator,
+        data,
+        setup,
+        settings,
+        args.store / label,
+        n=args.n,
+        noise_sd=sd,
+        materials=args.materials,
+        starts=args.starts,
     )
     run = len(list(cases.glob("*.json"))) - done_before
     timing = {"cases_run": run, "seconds_per_case": (time.perf_counter() - start) / run} if run else {}
@@ -94,6 +103,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         **timing,
         "emulator": str(args.emulator),
         "material_scale": material_scale(emulator) if settings.emulator_scale else None,
+        "parameter_shift": emulator.held_out_excess.parameter_shift.to_json() if settings.emulator_shift else None,
         "data": str(args.data),
         "starts_per_material": args.starts,
     }

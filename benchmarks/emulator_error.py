@@ -78,7 +78,7 @@ def main() -> None:
         return GPBank.from_sklearn(fit_gps(x_rows, y_rows, restarts=0, n_jobs=1, kernels=kernels))
 
     for name, fit in (("cv_kernels_kept", fixed_kernels), ("cv_refitted", refitted)):
-        error, variance = cross_validated_errors(fit, x, w, train_rows.index[:, 0], subset)
+        error, variance, _ = cross_validated_errors(fit, x, w, train_rows.index[:, 0], subset)
         results[name] = per_frame_z_rms(error, variance, train_rows.index[:, 2])
         results[name + "_excess"] = cross_validated_excess(
             fit,

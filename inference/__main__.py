@@ -29,10 +29,11 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--emulator-error",
-        choices=["on", "scaled", "off"],
+        choices=["on", "scaled", "shift", "off"],  # inference.studies.EMULATOR_ERRORS (imported lazily)
         default="on",
         help="carry the emulator's held-out error and PCA truncation in the likelihood (on), that "
-        "error times a sampled material scale (scaled), or the GP variance only (off)",
+        "error times a sampled material scale (scaled), the error as a shift of the parameters "
+        "shared by every observation (shift), or the GP variance only (off)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -420,7 +421,7 @@ def _add_dic_import(p: argparse.ArgumentParser) -> None:
 
 
 def settings_of(args):
-    from inference.studies import SamplerSettings
+    from inference.studies import SamplerSettings, emulator_error_flags
 
     return SamplerSettings(
         chains=args.chains,
@@ -430,8 +431,7 @@ def settings_of(args):
         n_jobs=args.jobs,
         gp_variance=args.gp_variance,
         progress=not args.quiet,
-        emulator_error=args.emulator_error != "off",
-        emulator_scale=args.emulator_error == "scaled",
+        **emulator_error_flags(args.emulator_error),
     )
 
 

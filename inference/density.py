@@ -12,7 +12,10 @@ Notation: u unconstrained (dim,), z = sigmoid(u[:5]), params = lower + z * span,
 x the 7 emulator inputs of each observation in the emulator's unit box. In the rotated weights
 W_g^T w_g (W_g, e_g fixed: :meth:`SkinPosterior.fixed_eigen`) the likelihood is a product of
 independent normals of variance lambda e_g + s_g, lambda the emulator scale (1 when it is not
-sampled) and s_g = sigma_c(g)^2 (HalfCauchy noise) or 1 (known noise, whitened by W_g).
+sampled) and s_g = sigma_c(g)^2 (HalfCauchy noise) or 1 (known noise, whitened by W_g). With the
+parameter shift (``emulator_shift``) the rotated weights also share lambda U U^T (U rotated the
+same way, fixed with the GP variance), a rank-5 term: the Gaussian is then evaluated by the
+Woodbury identity and the matrix determinant lemma with a 5 x 5 capacitance matrix.
 """
 
 from __future__ import annotations
@@ -50,6 +53,8 @@ class FusedLogDensity:
         self.noise_scale = posterior.noise_scale
         self.n_sigma = posterior.n_sigma
         self.scale_prior = posterior.scale_prior
+        shift = posterior.fixed_shift  # (G, n_obs, 5) or None
+        self.shift = None if shift is None else self.rotate(shift.numpy().transpose(1, 0, 2)).reshape(-1, 5)
 
     def rotate(self, a: np.ndarray) -> np.ndarray:
         """W_g^T a_g for every weight g: a (n_obs, G, ...) -> (n_obs, G, ...)."""
@@ -79,9 +84,8 @@ class FusedLogDensity:
         scale = np.exp(u[-1]) if self.scale_prior else 1.0
         total = scale * self.fixed_var + (sigma[self.component] ** 2 if self.halfcauchy else 1.0)
         r = self.weights - mean
-        loglik = -0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total)) - 0.5 * self.log_det_noise
-        d_mean = r / total  # dL/dmean
-        d_total = 0.5 * (r**2 / total**2 - 1 / total)  # dL/dtotal
+        loglik, d_mean, d_total, d_shared = self.gaussian(r, total, scale)
+        loglik -= 0.5 * self.log_det_noise
         dx = np.einsum("og,ogd->d", d_mean, dmean)
         grad = np.zeros_like(u)
         dz = z * (1 - z)
@@ -99,8 +103,27 @@ class FusedLogDensity:
         if self.scale_prior:  # InverseGamma(a, b) of lambda = e^v, with the Jacobian e^v
             a, b = self.scale_prior
             value += a * np.log(b) - gammaln(a) - a * u[-1] - b / scale
-            grad[-1] = np.sum(d_total * self.fixed_var) * scale - a + b / scale
+            grad[-1] = (np.sum(d_total * self.fixed_var) + d_shared) * scale - a + b / scale
         return float(value), grad
+
+    def gaussian(self, r: np.ndarray, total: np.ndarray, scale: float) -> tuple[float, np.ndarray, np.ndarray, float]:
+        """Log density of the rotated residuals r (n_obs, G) with variances ``total`` (n_obs, G)
+        (plus ``scale`` U U^T with the parameter shift), and its derivatives in the mean
+        (n_obs, G), in ``total`` (n_obs, G) and in lambda through U U^T (scalar)."""
+        if self.shift is None:
+            loglik = -0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total))
+            return loglik, r / total, 0.5 * (r**2 / total**2 - 1 / total), 0.0
+        d, rr, shift = total.ravel(), r.ravel(), self.shift
+        m = np.sqrt(scale) * shift / d[:, None]  # D^-1 U
+        capacitance = np.eye(5) + scale * shift.T @ (shift / d[:, None])
+        capacitance_inv = np.linalg.inv(capacitance)
+        v = rr / d - m @ (capacitance_inv @ (np.sqrt(scale) * shift.T @ (rr / d)))  # Sigma^-1 r
+        log_det = np.sum(np.log(d)) + np.linalg.slogdet(capacitance)[1]
+        loglik = -0.5 * (rr @ v + log_det + rr.size * np.log(2 * np.pi))
+        inv_diag = 1 / d - np.sum((m @ capacitance_inv) * m, axis=1)  # diag Sigma^-1
+        inv_shift = shift / d[:, None] - m @ (capacitance_inv @ (np.sqrt(scale) * shift.T @ (shift / d[:, None])))
+        d_shared = 0.5 * (np.sum((shift.T @ v) ** 2) - np.sum(shift * inv_shift))
+        return loglik, v.reshape(r.shape), 0.5 * (v**2 - inv_diag).reshape(r.shape), d_shared
 
 
 class _Potential(torch.autograd.Function):

@@ -16,7 +16,12 @@ the held-out materials (:func:`surrogate.error_model.fit_material_scale`), sampl
 ``emulator_scale`` when ``emulator_scale`` is on (off by default: lambda = 1; on the fresh
 ``small`` materials it calibrates the 50 % intervals of a few frames but makes those of θ from
 three membranes over-confident, docs/inference.md).
-Weights g are independent, as the GPs are. S_g is the observation noise, either
+Weights g are independent, as the GPs are -- unless ``emulator_shift`` is on: the emulator's
+error is then mostly a shift of the material's parameters shared by every weight and
+observation (:class:`surrogate.error_model.ParameterShift`), carried as lambda J C J^T over all
+weights together (J the emulator mean's Jacobian in the unit box of the parameters, evaluated
+at the point, or at the mode with the GP variance; C the shift covariance), with the held-out
+excess tau_g^2 replaced by what the shift leaves. S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
 - ``noise="known"``: the measurement's stated per-cell standard deviation carried through the
@@ -180,20 +185,22 @@ class ErrorBudget:
     gp: float  # the GPs' own predictive variance
     held_out_excess: float  # the cross-validated excess (surrogate.error_model)
     truncation: float  # what the retained PCs cannot represent, through the masked projection
+    parameter_shift: float = 0.0  # the error shared as a shift of the parameters (emulator_shift)
 
     @property
     def emulator(self) -> float:
-        return self.gp + self.held_out_excess + self.truncation
+        return self.gp + self.held_out_excess + self.truncation + self.parameter_shift
 
     def statement(self, params: np.ndarray) -> str:
         """One sentence for the summary: which term limits the intervals."""
+        shift = f"parameter shift {self.parameter_shift:.0%}, " if self.parameter_shift else ""
         shares = (
             f"noise {self.noise:.0%}, GP {self.gp:.0%}, held-out excess {self.held_out_excess:.0%}, "
-            f"PCA truncation {self.truncation:.0%} of the weights' variance"
+            f"{shift}PCA truncation {self.truncation:.0%} of the weights' variance"
         )
         if self.emulator <= self.noise:
             return f"the measurement noise limits these intervals ({shares})"
-        if self.truncation >= self.gp + self.held_out_excess:
+        if self.truncation >= self.gp + self.held_out_excess + self.parameter_shift:
             return (
                 f"the emulator's PCA truncation, not your measurement, limits these intervals ({shares}): the "
                 "field of view leaks the discarded components into the kept ones; refit the emulator with more "
@@ -214,6 +221,8 @@ class SkinPosterior:
             the GP's own covariance only.
         emulator_scale: sample the material scale lambda of that error (module doc); needs
             ``emulator_error`` and an emulator that has fitted it.
+        emulator_shift: carry the emulator's error as a parameter shift (module doc); needs
+            ``emulator_error`` and an emulator that has fitted it.
     """
 
     def __init__(
@@ -225,6 +234,7 @@ class SkinPosterior:
         gp_variance: str = "exact",
         emulator_error: bool = True,
         emulator_scale: bool = False,
+        emulator_shift: bool = False,
     ):
         if noise not in ("halfcauchy", "known"):
             raise ValueError(f"noise must be 'halfcauchy' or 'known', got '{noise}'")
@@ -249,8 +259,15 @@ class SkinPosterior:
             np.concatenate([[k] * m for k, m in enumerate(emulator.n_weights.values())])
         )
         self.noise_var = None if observed.noise_var is None else torch.as_tensor(observed.noise_var)
-        self.excess_cov, self.truncation_var = self._emulator_error_terms()
         excess = emulator.held_out_excess
+        self.shift = excess.parameter_shift if emulator_error and emulator_shift and excess else None
+        if emulator_shift and self.shift is None:
+            raise ValueError(
+                "the parameter shift needs the emulator's error model (emulator_error on) and an emulator "
+                "that fitted it: refit it with 'skinid surrogate fit'"
+            )
+        self.shift_root = None if self.shift is None else torch.as_tensor(psd_root(np.array(self.shift.covariance)))
+        self.excess_cov, self.truncation_var = self._emulator_error_terms()
         self.scale_prior = excess.material_scale if emulator_error and emulator_scale and excess else None
         if emulator_scale and self.scale_prior is None:
             raise ValueError(
@@ -258,6 +275,7 @@ class SkinPosterior:
                 "that fitted its material scale: refit it with 'skinid surrogate fit'"
             )
         self.fixed_gp_cov: torch.Tensor | None = None
+        self.fixed_shift: torch.Tensor | None = None
         self._density = None
 
     def _emulator_error_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -266,7 +284,7 @@ class SkinPosterior:
         n_obs, n_weights = self.weights.shape
         excess = self.emulator.held_out_excess
         if self.emulator_error and excess is not None:
-            tau2 = np.array(excess.variance)
+            tau2 = np.array(excess.variance if self.shift is None else self.shift.residual_variance)
             scale = excess.load_scale(self.observed.design_inputs)
         else:
             tau2, scale = np.zeros(n_weights), np.zeros(n_obs)
@@ -323,6 +341,18 @@ class SkinPosterior:
             return self.emulator.predict_weights(x, return_var=False), self.fixed_gp_cov
         return self.emulator.predict_joint(x)
 
+    def shift_factor(self, params: torch.Tensor) -> torch.Tensor | None:
+        """U (G, n_obs, 5) with J C J^T = U U^T (module doc), differentiable in params (5,);
+        fixed with the GP variance; None without the parameter shift."""
+        if self.shift_root is None:
+            return None
+        if self.variance_is_fixed:
+            return self.fixed_shift
+        jac = torch.autograd.functional.jacobian(
+            lambda p: self.emulator.predict_weights(self.inputs(p), return_var=False), params, create_graph=True
+        )  # (n_obs, G, 5) in the raw parameters
+        return ((jac * self.span) @ self.shift_root).permute(1, 0, 2)
+
     def noise_variance(self, sigma: torch.Tensor) -> torch.Tensor:
         """Observation-noise variance (n_obs, G) of every weight from sigma (n_sigma,)."""
         if sigma.shape[-1] != self.n_sigma:
@@ -349,13 +379,16 @@ class SkinPosterior:
         weight g's covariance; NaN where a covariance is not positive definite (non-finite
         parameters, as a line search may try)."""
         mean, cov = self.moments(params, sigma, scale)
+        factor = self.shift_factor(params)
+        if factor is not None:  # one covariance over every weight, in the order (g, o)
+            cov = coupled_covariance(cov, factor, scale)
         chol, info = torch.linalg.cholesky_ex(cov)
         if bool(info.any()):
             nan = torch.full_like(mean, math.nan)
             return nan, nan
-        resid = (self.weights - mean).T[..., None]
-        white = torch.linalg.solve_triangular(chol, resid, upper=False)[..., 0]
-        return white.T, torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).T
+        resid = (self.weights - mean).T.reshape(cov.shape[:-1])[..., None]
+        white = torch.linalg.solve_triangular(chol, resid, upper=False)[..., 0].reshape(mean.T.shape)
+        return white.T, torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).reshape(mean.T.shape).T
 
     def log_likelihood(
         self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
@@ -451,10 +484,14 @@ class SkinPosterior:
         return np.array(out)
 
     def fix_gp_variance(self, params: np.ndarray) -> None:
-        """Hold the GP covariance at its value at ``params`` (5,) (``gp_variance="mode"``)."""
-        self.fixed_gp_cov = None
+        """Hold the GP covariance (and the parameter shift's Jacobian) at their values at
+        ``params`` (5,) (``gp_variance="mode"``)."""
+        self.fixed_gp_cov = self.fixed_shift = None
+        params = torch.as_tensor(params)
+        shift = self.shift_factor(params)
         with torch.no_grad():
-            self.fixed_gp_cov = self.gp_moments(torch.as_tensor(params))[1]
+            self.fixed_gp_cov = self.gp_moments(params)[1]
+        self.fixed_shift = None if shift is None else shift.detach()
         self._density = None
 
     def gp_variance_spread(self, draws: np.ndarray, n: int = 50, seed: int = 0) -> dict:
@@ -499,7 +536,9 @@ class SkinPosterior:
         with torch.no_grad():
             gp = torch.diagonal(self.gp_moments(params)[1], dim1=-2, dim2=-1).T
             excess = torch.diagonal(self.excess_cov, dim1=-2, dim2=-1).T
-            terms = [self.noise_variance(sigma), scale * gp, scale * excess, scale * self.truncation_var]
+            factor = self.shift_factor(params)
+            shift = torch.zeros_like(gp) if factor is None else torch.sum(factor.detach() ** 2, -1).T
+            terms = [self.noise_variance(sigma), scale * gp, scale * excess, scale * self.truncation_var, scale * shift]
             total = sum(terms)
             shares = [float(torch.mean(term / total)) for term in terms]
         return ErrorBudget(*shares)
@@ -540,7 +579,27 @@ def prior_draws(posterior: SkinPosterior, n: int, seed: int) -> np.ndarray:
     return np.column_stack([draws[name].reshape(n).numpy() for name in posterior.names])
 
 
+def psd_root(cov: np.ndarray) -> np.ndarray:
+    """R (k, k) with R R^T = cov for a symmetric positive semi-definite cov (k, k)."""
+    eigenvalues, vectors = np.linalg.eigh(cov)
+    return vectors * np.sqrt(np.maximum(eigenvalues, 0.0))
+
+
+def coupled_covariance(blocks: torch.Tensor, factor: torch.Tensor, scale: torch.Tensor | float) -> torch.Tensor:
+    """(G n_obs, G n_obs) covariance of every weight, in the order (g, o): the per-weight
+    ``blocks`` (G, n_obs, n_obs) plus lambda U U^T of the parameter shift, ``factor`` U (G, n_obs, k)."""
+    flat = factor.reshape(-1, factor.shape[-1])
+    return torch.block_diag(*blocks) + scale * flat @ flat.T
+
+
 def pyro_model(posterior: SkinPosterior) -> None:
     """The same model in Pyro's language (reference for :class:`SkinPosterior`)."""
-    mean, cov = posterior.moments(*pyro_prior(posterior))
-    pyro.sample("weights", dist.MultivariateNormal(mean.T, covariance_matrix=cov).to_event(1), obs=posterior.weights.T)
+    params, sigma, scale = pyro_prior(posterior)
+    mean, cov = posterior.moments(params, sigma, scale)
+    factor = posterior.shift_factor(params)
+    if factor is None:
+        likelihood = dist.MultivariateNormal(mean.T, covariance_matrix=cov).to_event(1)
+        pyro.sample("weights", likelihood, obs=posterior.weights.T)
+        return
+    likelihood = dist.MultivariateNormal(mean.T.reshape(-1), covariance_matrix=coupled_covariance(cov, factor, scale))
+    pyro.sample("weights", likelihood, obs=posterior.weights.T.reshape(-1))

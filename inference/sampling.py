@@ -328,7 +328,8 @@ GROUP_ATTRS = {
     "observed_data": {
         "weights": "PC weights of the observed log strains (masked least-squares projection on the emulator's "
         "PCA basis); raw, not whitened; covariance per PC over the observations: emulator_scale x (GP + "
-        "held-out excess + PCA truncation) + noise (inference.model)",
+        "held-out excess + PCA truncation) + noise, plus the parameter shift J C J^T over every PC with "
+        "emulator_error 'shift' (inference.model)",
     },
     "constant_data": {
         "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
@@ -399,7 +400,15 @@ def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, s
         "noise": posterior.noise,
         "noise_scale": posterior.noise_scale,
         "gp_variance": posterior.gp_variance,
-        "emulator_error": "scaled" if posterior.scale_prior else "on" if posterior.emulator_error else "off",
+        "emulator_error": (
+            "scaled"
+            if posterior.scale_prior
+            else "shift"
+            if posterior.shift
+            else "on"
+            if posterior.emulator_error
+            else "off"
+        ),
     }
     prior = {"draws": f"{N_PRIOR_DRAWS} draws of inference.model.pyro_prior, seed {seed}"}
     return {"/": root, "prior": prior, **GROUP_ATTRS}

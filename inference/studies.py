@@ -32,6 +32,21 @@ class SamplerSettings:
     progress: bool = True
     emulator_error: bool = True
     emulator_scale: bool = False
+    emulator_shift: bool = False
+
+
+EMULATOR_ERRORS = ("on", "scaled", "shift", "off")
+
+
+def emulator_error_flags(choice: str) -> dict[str, bool]:
+    """The :class:`SamplerSettings` flags of an ``--emulator-error`` choice (EMULATOR_ERRORS)."""
+    if choice not in EMULATOR_ERRORS:
+        raise ValueError(f"the emulator error must be one of {EMULATOR_ERRORS}, got '{choice}'")
+    return {
+        "emulator_error": choice != "off",
+        "emulator_scale": choice == "scaled",
+        "emulator_shift": choice == "shift",
+    }
 
 
 def sample_of(
@@ -45,6 +60,7 @@ def sample_of(
         gp_variance=settings.gp_variance,
         emulator_error=settings.emulator_error,
         emulator_scale=settings.emulator_scale,
+        emulator_shift=settings.emulator_shift,
     )
     return sample_posterior(
         posterior,

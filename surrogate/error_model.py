@@ -29,7 +29,19 @@ maximum likelihood to the held-out materials' errors at the largest load
 (:func:`fit_material_scale`); a -> infinity is the Gaussian model. The posterior samples
 lambda with the parameters.
 
-Units: weights are in the PCA's standardised units (per-cell scaled strain), as the GPs.
+Most of a material's error is a **parameter shift**: the emulator predicts the field of a
+slightly different material, e_m(o) ~ J(o) delta_m + eps_m(o) with J the GP mean's Jacobian in
+the five material inputs (on the ``small`` emulator 76-96 % of a left-out material's whitened
+|e|^2 over all its rows, where an error independent between rows would lose 5 / n of it;
+``benchmarks/material_scale.py``). That part is shared by every observation of the material,
+so more observations do not average it out, and a residual cannot tell it from the parameters
+(it moves the estimate instead of widening it). :func:`fit_parameter_shift` measures the
+shifts delta_m of the left-out materials (their covariance C) and the held-out excess of what
+they leave (:class:`ParameterShift`); a likelihood that carries J C J^T next to the rest
+(``inference.model``, ``emulator_shift``) widens the intervals by C in parameter space.
+
+Units: weights are in the PCA's standardised units (per-cell scaled strain), as the GPs; the
+shift in the emulator's unit box of the inputs.
 """
 
 from __future__ import annotations
@@ -49,6 +61,37 @@ FOLDS = 5
 
 
 @dataclass(frozen=True)
+class ParameterShift:
+    """A material's emulator error as a shift of its parameters (module doc).
+
+    Attributes:
+        covariance: (5, 5) covariance C of the shift delta in the emulator's unit box [-].
+        residual_variance: (G,) held-out excess of what the shift leaves, at s = 1 (as
+            :attr:`HeldOutExcess.variance`) [PC-weight units^2].
+        absorbed_share: mean share of a left-out material's whitened |e|^2 its shift explains [-].
+    """
+
+    covariance: tuple[tuple[float, ...], ...]
+    residual_variance: tuple[float, ...]
+    absorbed_share: float
+
+    def to_json(self) -> dict:
+        return {
+            "covariance": [list(row) for row in self.covariance],
+            "residual_variance": list(self.residual_variance),
+            "absorbed_share": self.absorbed_share,
+        }
+
+    @classmethod
+    def from_json(cls, entry: dict) -> ParameterShift:
+        return cls(
+            tuple(tuple(float(c) for c in row) for row in entry["covariance"]),
+            tuple(float(v) for v in entry["residual_variance"]),
+            float(entry["absorbed_share"]),
+        )
+
+
+@dataclass(frozen=True)
 class HeldOutExcess:
     """The cross-validated excess error of each GP (recorded in ``meta.json``).
 
@@ -60,6 +103,8 @@ class HeldOutExcess:
         load_reference: |alpha t|_max of the training rows [-] (s = |alpha t| / load_reference).
         material_scale: (shape a, rate b) of the material scale lambda ~ InverseGamma(a, b)
             (:func:`fit_material_scale`), or None (lambda = 1: emulators fitted before it).
+        parameter_shift: the error as a parameter shift (:func:`fit_parameter_shift`), or None
+            (emulators fitted before it).
     """
 
     variance: tuple[float, ...]
@@ -68,6 +113,7 @@ class HeldOutExcess:
     n_rows: int
     load_reference: float
     material_scale: tuple[float, float] | None = None
+    parameter_shift: ParameterShift | None = None
 
     def to_json(self) -> dict:
         return {
@@ -77,11 +123,12 @@ class HeldOutExcess:
             "n_rows": self.n_rows,
             "load_reference": self.load_reference,
             "material_scale": None if self.material_scale is None else list(self.material_scale),
+            "parameter_shift": None if self.parameter_shift is None else self.parameter_shift.to_json(),
         }
 
     @classmethod
     def from_json(cls, entry: dict) -> HeldOutExcess:
-        scale = entry.get("material_scale")
+        scale, shift = entry.get("material_scale"), entry.get("parameter_shift")
         return cls(
             tuple(entry["variance"]),
             tuple(entry["z_rms"]),
@@ -89,6 +136,7 @@ class HeldOutExcess:
             entry["n_rows"],
             entry["load_reference"],
             None if scale is None else (float(scale[0]), float(scale[1])),
+            None if shift is None else ParameterShift.from_json(shift),
         )
 
     def load_scale(self, design_inputs: np.ndarray) -> np.ndarray:
@@ -141,6 +189,37 @@ def fit_material_scale(quadratic: np.ndarray, n_values: np.ndarray) -> tuple[flo
     return a, a - 1
 
 
+def fit_parameter_shift(
+    error: np.ndarray, variance: np.ndarray, jacobian: np.ndarray, materials: np.ndarray, scale: np.ndarray, tau2
+) -> ParameterShift:
+    """Each material's shift delta_m: the least-squares fit of J delta to its errors whitened by
+    the GP variance plus the held-out excess tau_g^2 s^2; C = mean delta_m delta_m^T (a slight
+    overestimate: each delta_m carries its own fit error, small with many rows per material);
+    the excess of the residual (scaled by n_m / (n_m - 5) for the 5 fitted values) refitted as
+    :func:`excess_variance`.
+
+    Args:
+        error, variance: (n, G) held-out errors and GP variances (:func:`cross_validated_errors`).
+        jacobian: (n, G, 5) the GP mean's derivative in the five material inputs (unit box).
+        materials: (n,) material of each row; scale: (n,) load s; tau2: (G,) held-out excess.
+    """
+    sd = np.sqrt(variance + np.asarray(tau2) * scale[:, None] ** 2)
+    residual, shifts, absorbed = np.empty_like(error), [], []
+    for m in np.unique(materials):
+        rows = materials == m
+        e, jw = (error[rows] / sd[rows]).ravel(), (jacobian[rows] / sd[rows][..., None]).reshape(-1, 5)
+        delta = np.linalg.lstsq(jw, e, rcond=None)[0]
+        left = e - jw @ delta
+        shifts.append(delta)
+        absorbed.append(1 - float(left @ left) / float(e @ e))
+        residual[rows] = (error[rows] - jacobian[rows] @ delta) * np.sqrt(e.size / (e.size - 5))  # 5 fitted
+    delta = np.array(shifts)
+    tau2_left = [excess_variance(residual[:, g], variance[:, g], scale) for g in range(error.shape[1])]
+    return ParameterShift(
+        tuple(map(tuple, (delta.T @ delta / len(delta)).tolist())), tuple(tau2_left), float(np.mean(absorbed))
+    )
+
+
 def material_quadratic_forms(
     error: np.ndarray, variance: np.ndarray, materials: np.ndarray, correlation: Callable[[np.ndarray], np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -179,9 +258,10 @@ def cross_validated_errors(
     gp_subset: np.ndarray,
     folds: int = FOLDS,
     seed: int = 0,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Errors and GP variances (n, G) of every row predicted by GPs ``fit`` on the GP rows of
-    the other folds' materials (material-wise K-fold cross-validation).
+    the other folds' materials (material-wise K-fold cross-validation), and the derivative of
+    those predictions in the five material inputs (n, G, 5).
 
     Args:
         fit: fits a GP bank to unit-box inputs (n, 7) and targets (n, G).
@@ -190,15 +270,24 @@ def cross_validated_errors(
         gp_subset: indices of the rows the emulator's GPs are fitted on.
     """
     error, variance = np.zeros_like(weights), np.zeros_like(weights)
+    jacobian = np.zeros((*weights.shape, 5))
     for fold in material_folds(materials, folds, seed):
         keep = gp_subset[~np.isin(materials[gp_subset], fold)]
         fold_bank = fit(x[keep], weights[keep])
         test = np.flatnonzero(np.isin(materials, fold))
         for chunk in np.array_split(test, max(1, len(test) // 500)):
-            with torch.no_grad():
-                mean, var = fold_bank(torch.as_tensor(x[chunk]))
-            error[chunk], variance[chunk] = weights[chunk] - mean.numpy(), var.numpy()
-    return error, variance
+            mean, var, jacobian[chunk] = mean_jacobian(fold_bank, x[chunk])
+            error[chunk], variance[chunk] = weights[chunk] - mean, var
+    return error, variance, jacobian
+
+
+def mean_jacobian(bank: GPBank, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GP mean and variance (n, G) at unit inputs x (n, 7) and the mean's derivative in the five
+    material inputs (n, G, 5) (each row's mean depends on its own inputs only)."""
+    xt = torch.tensor(x, dtype=torch.float64, requires_grad=True)
+    mean, var = bank(xt)
+    grads = [torch.autograd.grad(mean[:, g].sum(), xt, retain_graph=True)[0][:, :5] for g in range(mean.shape[1])]
+    return mean.detach().numpy(), var.detach().numpy(), torch.stack(grads, 1).numpy()
 
 
 def cross_validated_excess(
@@ -213,8 +302,9 @@ def cross_validated_excess(
     folds: int = FOLDS,
     seed: int = 0,
 ) -> HeldOutExcess:
-    """The held-out excess of the GP fit (:func:`cross_validated_errors`), load-scaled, and the
-    spread of the material scale (:func:`fit_material_scale`) over the left-out materials.
+    """The held-out excess of the GP fit (:func:`cross_validated_errors`), load-scaled, the
+    spread of the material scale (:func:`fit_material_scale`) over the left-out materials and
+    their errors as parameter shifts (:func:`fit_parameter_shift`).
 
     Each fold's GPs are fitted anew, hyper-parameters included (the emulator starts the
     optimizer from its fitted kernels, without restarts): kernels tuned to all materials know
@@ -229,7 +319,7 @@ def cross_validated_excess(
             between them (:meth:`surrogate.emulator.Emulator.error_correlation`).
         The others as in :func:`cross_validated_errors`.
     """
-    error, variance = cross_validated_errors(fit, x, weights, materials, gp_subset, folds, seed)
+    error, variance, jacobian = cross_validated_errors(fit, x, weights, materials, gp_subset, folds, seed)
     load = np.linalg.norm(design_inputs, axis=1)
     scale = load / load.max()
     tau2 = np.array([excess_variance(error[:, g], variance[:, g], scale) for g in range(error.shape[1])])
@@ -246,6 +336,7 @@ def cross_validated_excess(
         len(error),
         float(load.max()),
         fit_material_scale(quadratic, counts),
+        fit_parameter_shift(error, variance, jacobian, materials, scale, tau2),
     )
 
 

@@ -36,13 +36,28 @@ def data(small_dataset):
 
 
 # -- the density -----------------------------------------------------------------------------
-@pytest.mark.parametrize("gp_variance, scaled", [("exact", False), ("mode", False), ("mode", True)])
-def test_potential_equals_pyro_models_potential(emulator, data, gp_variance, scaled):
+@pytest.mark.parametrize(
+    "gp_variance, scaled, shift",
+    [
+        ("exact", False, False),
+        ("mode", False, False),
+        ("mode", True, False),
+        ("exact", False, True),
+        ("mode", True, True),
+    ],
+)
+def test_potential_equals_pyro_models_potential(emulator, data, gp_variance, scaled, shift):
+    """Pyro's potential of :func:`pyro_model` (a MultivariateNormal per PC weight, or over every
+    weight with the parameter shift) against the posterior's, the closed form's for 'mode'."""
     from pyro.infer.mcmc.util import initialize_model
 
     obs = from_dataset(data, 0, designs=[0, 2], frames=[-2, -1])
     post = SkinPosterior(
-        emulator, ObservedWeights.project(emulator, obs), gp_variance=gp_variance, emulator_scale=scaled
+        emulator,
+        ObservedWeights.project(emulator, obs),
+        gp_variance=gp_variance,
+        emulator_scale=scaled,
+        emulator_shift=shift,
     )
     if gp_variance == "mode":
         post.fix_gp_variance(data.params[1])
@@ -63,11 +78,13 @@ def test_density_of_a_non_finite_point_is_non_finite_not_an_error(emulator, data
     assert not torch.isfinite(post.log_density(u))
 
 
+@pytest.mark.parametrize("shift", [False, True])
 @pytest.mark.parametrize(
     "noise, scaled", [("halfcauchy", False), ("halfcauchy", True), ("known", False), ("known", True)]
 )
-def test_closed_form_density_equals_autograd(emulator, data, noise, scaled):
-    """Either noise model, with and without the emulator scale sampled."""
+def test_closed_form_density_equals_autograd(emulator, data, noise, scaled, shift):
+    """Either noise model, with and without the emulator scale sampled, with and without the
+    parameter shift (the Woodbury form against the torch Cholesky of the whole covariance)."""
     from inference.coverage import noisy
     from inference.density import FusedLogDensity
 
@@ -75,7 +92,12 @@ def test_closed_form_density_equals_autograd(emulator, data, noise, scaled):
     if noise == "known":
         obs = noisy(obs, 2e-3, seed=0)
     post = SkinPosterior(
-        emulator, ObservedWeights.project(emulator, obs), noise=noise, gp_variance="mode", emulator_scale=scaled
+        emulator,
+        ObservedWeights.project(emulator, obs),
+        noise=noise,
+        gp_variance="mode",
+        emulator_scale=scaled,
+        emulator_shift=shift,
     )
     assert (post.names[-1] == "emulator_scale") == scaled and post.dim == 5 + post.n_sigma + scaled
     post.fix_gp_variance(data.params[2])
