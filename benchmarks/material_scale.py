@@ -1,6 +1,6 @@
 """Is one material's emulator error the average one? Whitened errors at the truth, per material.
 
-    python benchmarks/material_scale.py --emulator EMU --data FRESH.h5 --train-data TRAIN.h5 [--results FILE]
+    python benchmarks/material_scale.py --emulator EMU --data FRESH.h5 [--results FILE]
 
 For every test material of FRESH.h5, the last frame of one design (material i: design i mod n,
 as ``skinid study coverage --starts 1``) and of all designs, projected on the emulator's PCs and
@@ -23,11 +23,10 @@ b + |e - J delta|^2 / 2)). Recorded per parameter: the coverage of those lineari
 intervals (flat prior, box bounds ignored) under both, mean z^2, and the share of |e|^2 the
 parameters absorb against the p / n an isotropic error would give.
 
-``parameter_shift``: the same decomposition of each training material's error over all its rows,
-predicted by the emulator's cross-validation folds (GPs refitted without it, TRAIN.h5 the data
-the emulator was fitted on): the covariance C of those shifts and the residual's level relative
-to the likelihood's variance. The linearised coverage's ``shift`` entries use the posterior
-covariance level * (J^T J)^-1 + C of a likelihood that carried the shift.
+``shift``: the same cases under the likelihood of ``--emulator-error shift`` (the emulator's
+cross-validated parameter shift, ``meta.json`` ``held_out_excess.parameter_shift``, carried as
+J C J^T over every weight): the generalised least-squares shift of the estimate and its
+covariance under that likelihood, linearised at the truth as above.
 """
 
 from __future__ import annotations
@@ -45,14 +44,14 @@ HERE = Path(__file__).resolve().parent
 LEVELS = [0.1, 0.25, 0.5, 0.75, 0.9]
 
 
-def at_truth(emulator, data, material: int, designs: list[int], frames: tuple[int, ...] = (-1,)):
-    """The noise-free likelihood of one material's frames (default: the last) and its true
-    parameters (5,)."""
+def at_truth(emulator, data, material: int, designs: list[int], frames: tuple[int, ...] = (-1,), shift=False):
+    """The noise-free likelihood of one material's frames (default: the last; with the parameter
+    shift or not) and its true parameters (5,)."""
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
 
     observed = ObservedWeights.project(emulator, from_dataset(data, material, designs, list(frames)))
-    return SkinPosterior(emulator, observed), torch.as_tensor(observed.truth)
+    return SkinPosterior(emulator, observed, emulator_shift=shift), torch.as_tensor(observed.truth)
 
 
 def whitened(posterior, truth) -> np.ndarray:
@@ -108,73 +107,31 @@ def whitened_least_squares(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.
 
 
 def linearised_fit(posterior, truth) -> LinearisedFit:
-    """The shift of one case's estimate, whitened by the likelihood's covariance (lambda = 1)."""
+    """The shift of one case's estimate, whitened by the likelihood's covariance over every weight
+    (lambda = 1; the parameter shift's J C J^T included when the posterior carries it)."""
+    from inference.model import coupled_covariance
+
+    factor = posterior.shift_factor(truth)
     with torch.no_grad():
         mean, gp_cov = posterior.gp_moments(truth)
-        chol = torch.linalg.cholesky(posterior.model_covariance(gp_cov)).numpy()  # (G, n_obs, n_obs)
-    jac = torch.autograd.functional.jacobian(lambda p: posterior.gp_moments(p)[0], truth).numpy()
-    error = posterior.weights.numpy() - mean.numpy()  # (n_obs, G)
-    e = np.concatenate([np.linalg.solve(chol[g], error[:, g]) for g in range(len(chol))])
-    jw = np.concatenate([np.linalg.solve(chol[g], jac[:, g, :]) for g in range(len(chol))])
-    return LinearisedFit(*whitened_least_squares(e, jw))
+        blocks = posterior.model_covariance(gp_cov)
+        cov = torch.block_diag(*blocks) if factor is None else coupled_covariance(blocks, factor.detach(), 1.0)
+        chol = torch.linalg.cholesky(cov).numpy()
+    jac = torch.autograd.functional.jacobian(lambda p: posterior.gp_moments(p)[0], truth).numpy()  # (n_obs, G, 5)
+    error = (posterior.weights - mean).numpy().T.ravel()  # order (g, o), as the covariance
+    jw = np.linalg.solve(chol, jac.transpose(1, 0, 2).reshape(-1, 5))
+    return LinearisedFit(*whitened_least_squares(np.linalg.solve(chol, error), jw))
 
 
-def material_shift(bank, x: np.ndarray, weights: np.ndarray, excess: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """(delta (5,) in the unit box, residual, absorbed share) of one left-out material's rows:
-    unit inputs x (k, 7), weights (k, G), held-out excess variance (k, G) added to the GP's."""
-    xt = torch.tensor(x, dtype=torch.float64, requires_grad=True)
-    mean, var = bank(xt)
-    jac = torch.stack(
-        [torch.autograd.grad(mean[:, g].sum(), xt, retain_graph=True)[0][:, :5] for g in range(mean.shape[1])], 1
-    ).numpy()  # (k, G, 5): row b's mean depends on row b's inputs only
-    sd = np.sqrt(var.detach().numpy() + excess)
-    error = (weights - mean.detach().numpy()) / sd
-    delta, _, residual, absorbed = whitened_least_squares(error.ravel(), (jac / sd[..., None]).reshape(-1, 5))
-    return delta, residual, absorbed
-
-
-def cross_validated_shifts(emulator, train_data) -> dict:
-    """Each training material's error as a parameter shift, from the emulator's cross-validation
-    folds (GPs refitted without it, as the held-out excess): shift covariance and residual level."""
-    from surrogate.emulator import TrainingRows, fold_refit, gp_rows
-    from surrogate.error_model import material_folds
-
-    prov, excess = emulator.provenance, emulator.held_out_excess
-    rows = TrainingRows.from_dataset(train_data, np.array(prov.train_materials))
-    weights = emulator.weights_of_fields(emulator.dataset_fields(rows.fields))
-    x = emulator.scale(rows.inputs)
-    subset = gp_rows(len(rows.index), prov.gp_fraction, prov.n_gp_rows, prov.seed)
-    scale2 = excess.load_scale(rows.inputs[:, 5:])[:, None] ** 2 * np.array(excess.variance)
-    materials, fit = rows.index[:, 0], fold_refit(emulator.sklearn_gps, prov.seed)
-    shifts = []
-    for fold in material_folds(materials, excess.folds, prov.seed):
-        keep = subset[~np.isin(materials[subset], fold)]
-        bank = fit(x[keep], weights[keep])
-        shifts += [
-            material_shift(bank, x[materials == m], weights[materials == m], scale2[materials == m]) for m in fold
-        ]
-    delta = np.stack([d for d, _, _ in shifts])
-    dof = (materials == materials[0]).sum() * weights.shape[1] - 5
-    return {
-        "covariance_unit_box": (delta.T @ delta / len(delta)).tolist(),
-        "sd_unit_box": np.sqrt(np.mean(delta**2, axis=0)).round(4).tolist(),
-        "residual_level": float(np.mean([r for _, r, _ in shifts]) / dof),
-        "absorbed_share": float(np.mean([a for _, _, a in shifts])),
-        "materials": len(delta),
-    }
-
-
-def linearised_coverage(fits: list[LinearisedFit], n: int, shape: float, rate: float, shift: dict) -> dict:
+def linearised_coverage(fits: list[LinearisedFit], shifted: list[LinearisedFit], n: int, shape, rate) -> dict:
     """Coverage of the linearised intervals over the materials' fits: the likelihood's (fixed),
-    with the material scale (scaled), and with the shift model (shift: covariance ``C`` of the
-    parameters' shift, physical units, plus the likelihood's at the residual level)."""
+    with the material scale (scaled), and ``shifted``: the fits under the parameter shift."""
     z = np.stack([fit.z for fit in fits])  # (M, 5)
     residual = np.array([fit.residual for fit in fits])
     dof = n - z.shape[1]
     nu = 2 * shape + dof
     spread = np.sqrt((rate + residual / 2) / (shape + dof / 2))[:, None]  # sqrt(b' / a')
-    var = np.stack([np.diag(fit.cov) for fit in fits])
-    z_shift = np.stack([fit.delta for fit in fits]) / np.sqrt(shift["level"] * var + np.diag(shift["C"]))
+    z_shift = np.stack([fit.z for fit in shifted])
 
     def covered(level: float) -> dict:
         q = (1 + level) / 2
@@ -219,7 +176,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--emulator", type=Path, required=True)
     parser.add_argument("--data", type=Path, required=True, help="dataset of fresh test materials")
-    parser.add_argument("--train-data", type=Path, required=True, help="the dataset the emulator was fitted on")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "material_scale.json")
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
@@ -241,10 +197,11 @@ def main() -> None:
             "median_abs": float(np.median(np.abs(white))),
         }
     results["design_correlation"] = design_correlations(likelihoods["all_designs"])
-    shifts = cross_validated_shifts(emulator, StrainDataset.open(args.train_data))
-    span = emulator.upper[:5] - emulator.lower[:5]
-    shift = {"C": np.array(shifts["covariance_unit_box"]) * np.outer(span, span), "level": shifts["residual_level"]}
-    results["parameter_shift"] = shifts
+    shift = emulator.held_out_excess.parameter_shift
+    results["parameter_shift"] = {
+        **shift.to_json(),
+        "sd_unit_box": np.sqrt(np.diag(shift.covariance)).round(4).tolist(),
+    }
     results["linearised"] = {"parameters": list(PARAM_NAMES)}
     every_design = list(range(n_designs))
     setups = {
@@ -254,9 +211,10 @@ def main() -> None:
     setups["all_designs"] = [(i, every_design, (-1,)) for i in tests]
     setups["all_designs_3_frames"] = [(i, every_design, (-3, -2, -1)) for i in tests]
     for setup, cases in setups.items():
-        at = [at_truth(emulator, data, *case) for case in cases]
-        n = at[0][0].weights.numel()
-        results["linearised"][setup] = linearised_coverage([linearised_fit(*a) for a in at], n, shape, rate, shift)
+        fits = [linearised_fit(*at_truth(emulator, data, *case)) for case in cases]
+        shifted = [linearised_fit(*at_truth(emulator, data, *case, shift=True)) for case in cases]
+        n = at_truth(emulator, data, *cases[0])[0].weights.numel()
+        results["linearised"][setup] = linearised_coverage(fits, shifted, n, shape, rate)
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 

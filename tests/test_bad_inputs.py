@@ -522,6 +522,11 @@ CASES = {
         "an emulator that fitted its material scale: refit it with 'skinid surrogate fit'",
         emulator(meta(lambda e: e["held_out_excess"].pop("material_scale"))),
     ),
+    "infer-shift-with-an-emulator-fitted-before-the-parameter-shift": (
+        f"{INFER_DATA} --emulator-error shift".replace("{emu}", "{tmp}/emu"),
+        "the parameter shift needs the emulator's error model (emulator_error on) and an emulator that fitted it",
+        emulator(meta(lambda e: e["held_out_excess"].pop("parameter_shift"))),
+    ),
     "emulator-other-format": (
         "infer --emulator {tmp}/emu --data {data} --material 0 --out {out}",
         "is not a skinid emulator",
