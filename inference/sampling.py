@@ -295,6 +295,7 @@ DIMS = {
     "gp_variance": ["datum"],
     "truncation_variance": ["datum"],
     "held_out_excess": ["datum"],
+    "parameter_shift_factor": ["datum", "shift_direction"],
     "alpha11": ["observation"],
     "alpha22": ["observation"],
     "t": ["observation"],
@@ -335,6 +336,8 @@ GROUP_ATTRS = {
         "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
         "projection (noise_sd, PC-weight units); 'halfcauchy' has one sigma per strain component",
         "strain_field": "observed log strain on the emulator's skin cells (cell_x, cell_y [mm]); NaN: masked",
+        "parameter_shift_factor": "U with J C J^T = U U^T, the parameter shift's covariance between any two data "
+        "(emulator_error 'shift'; at the mode, with gp_variance; PC-weight units)",
     },
 }
 
@@ -362,6 +365,8 @@ def data_groups(posterior: SkinPosterior) -> dict[str, dict[str, np.ndarray]]:
         constant["gp_variance"] = torch.diagonal(posterior.fixed_gp_cov, dim1=-2, dim2=-1).T.numpy().ravel()
     constant["truncation_variance"] = posterior.truncation_var.numpy().ravel()
     constant["held_out_excess"] = torch.diagonal(posterior.excess_cov, dim1=-2, dim2=-1).T.numpy().ravel()
+    if posterior.fixed_shift is not None:  # (G, n_obs, k) -> (datum, k)
+        constant["parameter_shift_factor"] = posterior.fixed_shift.numpy().transpose(1, 0, 2).reshape(-1, 5)
     if observed.truth is not None:
         constant["truth"] = observed.truth
     if observed.fields is not None:

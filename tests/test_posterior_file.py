@@ -246,3 +246,22 @@ def test_a_non_positive_noise_scale_is_refused(emulator, dataset):
     observed = ObservedWeights.project(emulator, from_dataset(dataset, 10, designs=[0]))
     with pytest.raises(ValueError, match="noise_scale .* must be > 0, got 0"):
         SkinPosterior(emulator, observed, noise_scale=0.0)
+
+
+def test_the_parameter_shift_is_recorded_with_its_coupling(emulator, dataset):
+    """With '--emulator-error shift' constant_data holds U (datum, 5): U U^T is the coupling the
+    likelihood adds between any two data (the coupled covariance minus its per-PC blocks,
+    reordered from (pc, observation) to the file's datum order)."""
+    from inference.model import coupled_covariance
+    from inference.sampling import data_groups
+
+    observations = from_dataset(dataset, 10, designs=[0, 2], frames=[-1])
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), emulator_shift=True)
+    post.fix_gp_variance(dataset.params[3])
+    factor = data_groups(post)["constant_data"]["parameter_shift_factor"]
+    blocks = post.model_covariance(post.fixed_gp_cov)
+    coupling = (coupled_covariance(blocks, post.fixed_shift, 1.0) - torch.block_diag(*blocks)).numpy()
+    n_obs, n_weights = post.weights.shape
+    order = (np.arange(n_weights)[None, :] * n_obs + np.arange(n_obs)[:, None]).ravel()  # datum -> (g, o) index
+    np.testing.assert_allclose(factor @ factor.T, coupling[np.ix_(order, order)], rtol=1e-12, atol=1e-15)
+    assert np.abs(factor).max() > 0
