@@ -376,7 +376,8 @@ class SkinPosterior:
         self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """L_g^-1 (w_g - m_g) (n_obs, G) and log diag L_g (n_obs, G), L_g the Cholesky factor of
-        weight g's covariance; NaN where a covariance is not positive definite (non-finite
+        weight g's covariance (with the parameter shift: of the covariance of every weight, in
+        the order (g, o), reshaped); NaN where a covariance is not positive definite (non-finite
         parameters, as a line search may try)."""
         mean, cov = self.moments(params, sigma, scale)
         factor = self.shift_factor(params)

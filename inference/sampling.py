@@ -324,7 +324,8 @@ GROUP_ATTRS = {
     "log_likelihood": {
         "weights": "log density of each whitened PC weight (datum: see constant_data datum_*): the weights of one "
         "PC are correlated across observations by the emulator's error, so the terms are those of "
-        "L^-1 w (L the Cholesky factor of that PC's covariance); they sum to the likelihood NUTS samples",
+        "L^-1 w (L the Cholesky factor of that PC's covariance, or of every datum's with emulator_error "
+        "'shift'); they sum to the likelihood NUTS samples",
     },
     "observed_data": {
         "weights": "PC weights of the observed log strains (masked least-squares projection on the emulator's "
