@@ -120,7 +120,7 @@ SUMMARY_JSON = {
     "acceptance_rates": [0.86, 0.84, 0.9, 0.88],
     "seconds": 27.3,
     "gp_variance_over_posterior": {"ratio_median": 1.02, "ratio_5": 0.81, "ratio_95": 1.3},
-    "error_budget": {"noise": 0.05, "gp": 0.3, "held_out_excess": 0.25, "truncation": 0.4},
+    "error_budget": {"noise": 0.05, "gp": 0.3, "held_out_excess": 0.25, "truncation": 0.4, "parameter_shift": 0.0},
     "error_budget_statement": "the emulator's PCA truncation, not your measurement, limits these intervals (...)",
     "warnings": [
         "this emulator has no held-out error model (...)",
@@ -153,6 +153,8 @@ def test_summary_round_trips_through_its_json_unchanged(tmp_path):
         assert list(summary.parameters[name].to_json().items()) == list(entry.items())
     assert summary.error_budget == ErrorBudget(0.05, 0.3, 0.25, 0.4)
     assert summary.gp_variance_over_posterior == GpVarianceSpread(1.02, 0.81, 1.3)
+    budget = {k: v for k, v in SUMMARY_JSON["error_budget"].items() if k != "parameter_shift"}  # written before it
+    assert PosteriorSummary.from_json({**SUMMARY_JSON, "error_budget": budget}).error_budget.parameter_shift == 0.0
 
 
 def test_summaries_of_earlier_versions_load(tmp_path):
