@@ -98,29 +98,24 @@ class LinearisedFit:
         return self.delta / np.sqrt(np.diag(self.cov))
 
 
-def whitened_least_squares(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """delta, (J^T J)^-1, |e - J delta|^2 and the absorbed share for whitened e (n,), J (n, 5)."""
-    cov = np.linalg.inv(jacobian.T @ jacobian)
-    delta = cov @ jacobian.T @ error
-    residual = error - jacobian @ delta
-    return delta, cov, float(residual @ residual), float(1 - residual @ residual / (error @ error))
-
-
 def linearised_fit(posterior, truth) -> LinearisedFit:
     """The shift of one case's estimate, whitened by the likelihood's covariance over every weight
     (lambda = 1; the parameter shift's J C J^T included when the posterior carries it)."""
     from inference.model import coupled_covariance
+    from surrogate.error_model import least_squares_shift
 
-    factor = posterior.shift_factor(truth)
+    factor = posterior.shift_factor(truth, differentiable=False)
     with torch.no_grad():
         mean, gp_cov = posterior.gp_moments(truth)
         blocks = posterior.model_covariance(gp_cov)
-        cov = torch.block_diag(*blocks) if factor is None else coupled_covariance(blocks, factor.detach(), 1.0)
+        cov = torch.block_diag(*blocks) if factor is None else coupled_covariance(blocks, factor, 1.0)
         chol = torch.linalg.cholesky(cov).numpy()
     jac = torch.autograd.functional.jacobian(lambda p: posterior.gp_moments(p)[0], truth).numpy()  # (n_obs, G, 5)
     error = (posterior.weights - mean).numpy().T.ravel()  # order (g, o), as the covariance
     jw = np.linalg.solve(chol, jac.transpose(1, 0, 2).reshape(-1, 5))
-    return LinearisedFit(*whitened_least_squares(np.linalg.solve(chol, error), jw))
+    white = np.linalg.solve(chol, error)
+    delta, absorbed = least_squares_shift(white, jw)
+    return LinearisedFit(delta, np.linalg.inv(jw.T @ jw), (1 - absorbed) * float(white @ white), absorbed)
 
 
 def linearised_coverage(fits: list[LinearisedFit], shifted: list[LinearisedFit], n: int, shape, rate) -> dict:

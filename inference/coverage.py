@@ -31,7 +31,7 @@ import numpy as np
 
 from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, pyplot, save_figure
-from inference.studies import SamplerSettings, sample_of, spread_designs
+from inference.studies import SamplerSettings, emulator_error_of, sample_of, spread_designs
 from skinfem.io import StrainDataset
 from skinfem.outputs import write_text
 from surrogate.emulator import Emulator
@@ -163,7 +163,7 @@ def coverage_study(
     rank_histograms(
         np.array([r.rank for r in results]),
         out / "ranks.png",
-        f"{setup} (n = {n}), noise sd {noise_sd:g}: {len(results)} cases",
+        f"{setup} (n = {n}), noise sd {noise_sd:g}, emulator error {emulator_error_of(settings)}: {len(results)} cases",
     )
     return summary
 

@@ -341,15 +341,17 @@ class SkinPosterior:
             return self.emulator.predict_weights(x, return_var=False), self.fixed_gp_cov
         return self.emulator.predict_joint(x)
 
-    def shift_factor(self, params: torch.Tensor) -> torch.Tensor | None:
-        """U (G, n_obs, 5) with J C J^T = U U^T (module doc), differentiable in params (5,);
-        fixed with the GP variance; None without the parameter shift."""
+    def shift_factor(self, params: torch.Tensor, differentiable: bool = True) -> torch.Tensor | None:
+        """U (G, n_obs, 5) with J C J^T = U U^T (module doc), differentiable in params (5,) unless
+        ``differentiable`` is False; fixed with the GP variance; None without the parameter shift."""
         if self.shift_root is None:
             return None
         if self.variance_is_fixed:
             return self.fixed_shift
         jac = torch.autograd.functional.jacobian(
-            lambda p: self.emulator.predict_weights(self.inputs(p), return_var=False), params, create_graph=True
+            lambda p: self.emulator.predict_weights(self.inputs(p), return_var=False),
+            params,
+            create_graph=differentiable,
         )  # (n_obs, G, 5) in the raw parameters
         return ((jac * self.span) @ self.shift_root).permute(1, 0, 2)
 
@@ -489,10 +491,10 @@ class SkinPosterior:
         ``params`` (5,) (``gp_variance="mode"``)."""
         self.fixed_gp_cov = self.fixed_shift = None
         params = torch.as_tensor(params)
-        shift = self.shift_factor(params)
+        shift = self.shift_factor(params, differentiable=False)
         with torch.no_grad():
             self.fixed_gp_cov = self.gp_moments(params)[1]
-        self.fixed_shift = None if shift is None else shift.detach()
+        self.fixed_shift = shift
         self._density = None
 
     def gp_variance_spread(self, draws: np.ndarray, n: int = 50, seed: int = 0) -> dict:

@@ -49,6 +49,13 @@ def emulator_error_flags(choice: str) -> dict[str, bool]:
     }
 
 
+def emulator_error_of(settings: SamplerSettings) -> str:
+    """The EMULATOR_ERRORS choice that ``settings`` hold (the inverse of :func:`emulator_error_flags`)."""
+    if not settings.emulator_error:
+        return "off"
+    return "scaled" if settings.emulator_scale else "shift" if settings.emulator_shift else "on"
+
+
 def sample_of(
     emulator: Emulator, observations: list[Observation], settings: SamplerSettings, noise: str = "halfcauchy"
 ) -> PosteriorSamples:

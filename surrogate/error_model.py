@@ -189,6 +189,14 @@ def fit_material_scale(quadratic: np.ndarray, n_values: np.ndarray) -> tuple[flo
     return a, a - 1
 
 
+def least_squares_shift(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, float]:
+    """The shift delta (5,) whose J delta best explains the whitened errors e (n,) (J: (n, 5),
+    whitened the same way), and the share 1 - |e - J delta|^2 / |e|^2 of |e|^2 it absorbs."""
+    delta = np.linalg.lstsq(jacobian, error, rcond=None)[0]
+    left = error - jacobian @ delta
+    return delta, 1 - float(left @ left) / float(error @ error)
+
+
 def fit_parameter_shift(
     error: np.ndarray, variance: np.ndarray, jacobian: np.ndarray, materials: np.ndarray, scale: np.ndarray, tau2
 ) -> ParameterShift:
@@ -208,10 +216,9 @@ def fit_parameter_shift(
     for m in np.unique(materials):
         rows = materials == m
         e, jw = (error[rows] / sd[rows]).ravel(), (jacobian[rows] / sd[rows][..., None]).reshape(-1, 5)
-        delta = np.linalg.lstsq(jw, e, rcond=None)[0]
-        left = e - jw @ delta
+        delta, share = least_squares_shift(e, jw)
         shifts.append(delta)
-        absorbed.append(1 - float(left @ left) / float(e @ e))
+        absorbed.append(share)
         residual[rows] = (error[rows] - jacobian[rows] @ delta) * np.sqrt(e.size / (e.size - 5))  # 5 fitted
     delta = np.array(shifts)
     tau2_left = [excess_variance(residual[:, g], variance[:, g], scale) for g in range(error.shape[1])]

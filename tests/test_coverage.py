@@ -8,7 +8,7 @@ import pytest
 
 from inference import coverage
 from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study, summarise
-from inference.studies import SamplerSettings, spread_designs
+from inference.studies import EMULATOR_ERRORS, SamplerSettings, emulator_error_flags, emulator_error_of, spread_designs
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
 
@@ -42,6 +42,11 @@ def test_one_start_per_material_gives_independent_cases_over_every_design(data):
     assert len(cases_of(data, "single", materials=[0], starts=len(data.designs))) == len(data.designs)
     with pytest.raises(ValueError, match="starting designs per material must be in"):
         cases_of(data, "single", starts=0)
+
+
+@pytest.mark.parametrize("choice", EMULATOR_ERRORS)
+def test_the_error_model_named_on_a_study_is_the_one_its_settings_hold(choice):
+    assert emulator_error_of(SamplerSettings(**emulator_error_flags(choice))) == choice
 
 
 def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
