@@ -337,6 +337,8 @@ GROUP_ATTRS = {
         "noise": "no spatial correlation: 'known' carries the stated sd of independent skin cells through the "
         "projection (noise_sd, PC-weight units); 'halfcauchy' has one sigma per strain component",
         "strain_field": "observed log strain on the emulator's skin cells (cell_x, cell_y [mm]); NaN: masked",
+        "held_out_excess": "variance of the emulator's error on held-out materials beyond the GP's, per datum "
+        "(PC-weight units); with emulator_error 'shift' the part the parameter shift leaves",
         "parameter_shift_factor": "U with J C J^T = U U^T, the parameter shift's covariance between any two data "
         "(emulator_error 'shift'; at the mode, with gp_variance; PC-weight units)",
     },
