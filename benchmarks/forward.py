@@ -4,6 +4,7 @@ and a mesh/element convergence table.
     python benchmarks/forward.py timing [--config paper] [--ranks 1 2] [--refactor-krylov 10 0]
                                         [--repeat 3] [--petsc KEY=VALUE ...] [--label _x]
     python benchmarks/forward.py convergence
+    python benchmarks/forward.py tolerance [--config paper] [--results ...]
     python benchmarks/forward.py run-one CONFIG OUT.json   # (internal, under mpirun)
 
 ``--refactor-krylov`` values are timed one after another: the default (LU reused as GMRES
@@ -14,6 +15,12 @@ simulations with one model, as a sweep does, and keeps the median wall time: thi
 speed varies by ±15 % from minute to minute. ``--petsc`` adds options to the model's solver
 (e.g. ``--petsc mat_mumps_icntl_7=3`` for another ordering) to measure solver levers;
 ``--results benchmarks/results/forward_levers.json`` keeps such runs apart.
+
+``tolerance`` solves the same simulation with looser Newton (``solver.atol``) and GMRES
+(``solver.krylov_rtol``) tolerances on the ranks of COMM_WORLD and records, per pair, the
+factorizations, triangular solves, Newton iterations and the largest relative L2 change of a
+frame's skin strain against the default tolerances (the issue's bound for an unchanged field:
+1e-6); key ``newton_tolerance_<config>``.
 
 Results are merged into benchmarks/results/forward.json. Numbers are recorded, not asserted.
 """
@@ -243,9 +250,53 @@ def convergence(mesh_dir: str) -> None:
     )
 
 
+TOLERANCES = [(1e-10, 1e-8), (1e-9, 1e-8), (1e-8, 1e-8), (1e-8, 1e-5), (3e-8, 1e-8), (1e-7, 1e-8)]
+
+
+def tolerance(config_source: str, mesh_dir: str, results: Path) -> None:
+    """The field change and work of each (atol [N], krylov_rtol) pair of TOLERANCES (first: the
+    defaults, the reference)."""
+    import dataclasses
+
+    from mpi4py import MPI
+
+    from skinfem.config import load_config
+    from skinfem.fenics import PETSc
+    from skinfem.model import SkinModel
+    from skinfem.params import Design, SkinParams
+
+    comm, base, rows, reference = MPI.COMM_WORLD, load_config(config_source), [], None
+    PETSc.Log.begin()
+    for atol, krylov_rtol in TOLERANCES:
+        solver = dataclasses.replace(base.solver, atol=atol, krylov_rtol=krylov_rtol)
+        model = SkinModel(dataclasses.replace(base, solver=solver), comm, mesh_dir=mesh_dir)
+        before = PETSc.Log.Event("MatSolve").getPerfInfo()["count"]
+        frames = model.simulate(SkinParams(**PARAMS), Design(**DESIGN))
+        strain = np.asarray(frames.strain)  # (n_frames, n_cells, 3)
+        reference = strain if reference is None else reference
+        change = [np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in zip(strain, reference)]
+        rows.append(
+            {
+                "atol": atol,
+                "krylov_rtol": krylov_rtol,
+                "seconds": frames.seconds,
+                "newton_iterations_per_increment": frames.newton_iterations,
+                "factorizations": model.factorizations,
+                "triangular_solves": comm.allreduce(
+                    PETSc.Log.Event("MatSolve").getPerfInfo()["count"] - before, op=MPI.MAX
+                ),
+                "max_relative_change_of_a_frame": float(max(change)),
+            }
+        )
+        if comm.rank == 0:
+            print(rows[-1], flush=True)
+    if comm.rank == 0:
+        merge_results(f"newton_tolerance_{base.name}", {"ranks": comm.size, "rows": rows}, results)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("part", choices=["timing", "convergence", "run-one"])
+    parser.add_argument("part", choices=["timing", "convergence", "tolerance", "run-one"])
     parser.add_argument("args", nargs="*")
     parser.add_argument("--config", default="paper")
     parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
@@ -281,6 +332,8 @@ def main() -> None:
         run_one(a.args[0], a.args[1], a.mesh_dir, a.refactor_krylov[0], a.petsc, a.repeat)
     elif a.part == "timing":
         timing(a.config, a.ranks, a.mesh_dir, a.refactor_krylov, a.petsc, a.label, a.repeat, a.results)
+    elif a.part == "tolerance":
+        tolerance(a.config, a.mesh_dir, a.results)
     else:
         convergence(a.mesh_dir)
 
