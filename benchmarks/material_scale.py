@@ -206,9 +206,10 @@ def main() -> None:
     setups["all_designs"] = [(i, every_design, (-1,)) for i in tests]
     setups["all_designs_3_frames"] = [(i, every_design, (-3, -2, -1)) for i in tests]
     for setup, cases in setups.items():
-        fits = [linearised_fit(*at_truth(emulator, data, *case)) for case in cases]
+        likelihoods = [at_truth(emulator, data, *case) for case in cases]
+        fits = [linearised_fit(*at) for at in likelihoods]
         shifted = [linearised_fit(*at_truth(emulator, data, *case, shift=True)) for case in cases]
-        n = at_truth(emulator, data, *cases[0])[0].weights.numel()
+        n = likelihoods[0][0].weights.numel()
         results["linearised"][setup] = linearised_coverage(fits, shifted, n, shape, rate)
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
