@@ -19,7 +19,7 @@ speed varies by ±15 % from minute to minute. ``--petsc`` adds options to the mo
 ``tolerance`` solves the same simulation with looser Newton (``solver.atol``) and GMRES
 (``solver.krylov_rtol``) tolerances on the ranks of COMM_WORLD and records, per pair, the
 factorizations, triangular solves, Newton iterations and the largest relative L2 change of a
-frame's skin strain against the default tolerances (the issue's bound for an unchanged field:
+frame's skin strain against the default tolerances (the bound for an unchanged field:
 1e-6); key ``newton_tolerance_<config>``.
 
 Results are merged into benchmarks/results/forward.json. Numbers are recorded, not asserted.
