@@ -14,7 +14,8 @@ kappa 0.285, theta 30 deg), two membranes ((0.05, 0.05), (0.05, -0.05)), measure
 correlated noise (sd 1e-3, 2 mm, 30 % uncorrelated), one noise draw per seed. Cases: no hidden
 effect, one hidden effect (pre-stretch 1.08 x 1.02 at 30 deg, muscle 2x stiffer, skin 1.5x
 thicker), two at once (``two_effects``: the pre-stretch and the stiffer muscle), or a defect
-outside the registry (``inclusion``: skin 8x stiffer in a 3.5 mm disc at (-13, 4) mm). Each
+outside the registry (``inclusion``: skin 8x stiffer in a 3.5 mm disc at (-13, 4) mm), or no
+effect with the noise understated (``understated_noise``: sd 2e-3 drawn, 1e-3 in the files). Each
 (case, seed) is one ``skinid check`` with the discretisation estimate and the true effect added
 as a version (``--add``), so that the RMSE after adding it is measured too; two effects take
 successive rounds (the first check's named effect added in a second check, whose next round
@@ -66,7 +67,16 @@ def hidden_effects() -> dict[str, dict[str, float]]:
         "skin_thickness": {"skin_thickness.log_factor": float(np.log(1.5))},
         "two_effects": {**pre_stretch, **muscle},
         "inclusion": {},
+        "understated_noise": {},
     }
+
+
+NOISE_DRAWN = {"understated_noise": 2.0}  # drawn noise sd / the sd the files state
+
+
+def data_case(case: str) -> str:
+    """The case whose noise-free data this case measures (the noise cases share "none"'s)."""
+    return "none" if case in NOISE_DRAWN else case
 
 
 def hidden_defects(case: str) -> tuple:
@@ -222,7 +232,8 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     folder = args.out / f"{case}_{seed}"
     files = None
     if comm.rank == 0:
-        files = write_noisy(fields, points, DESIGNS, NoiseModel(**NOISE), folder / "m", seed)
+        drawn = NoiseModel(**{**NOISE, "sd": NOISE["sd"] * NOISE_DRAWN.get(case, 1.0)})
+        files = write_noisy(fields, points, DESIGNS, drawn, folder / "m", seed, stated_sd=NOISE["sd"])
     verdicts, reports, seconds = rounds(comm.bcast(files), folder, case, args)
     if comm.rank or not all(reports):
         return {}
@@ -233,10 +244,12 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     spot = first.diagnosis.hotspot
     baseline = first.versions[0]
     final = last.versions[-1] if len(last.versions) > 1 else None  # with the true effect added
+    noise = first.noise_statement
     row = {
         "case": case,
         "seed": seed,
-        "verdict": ", then ".join(verdicts),
+        "verdict": ", then ".join(verdicts) + ("" if noise.consistent else f" (noise {noise.factor:.1f}x stated)"),
+        "noise_factor": {"drawn": NOISE_DRAWN.get(case, 1.0), "estimated": noise.factor},
         "rank_of_true_effect": min(ranks) if ranks else None,
         "rmse_baseline": baseline.metrics.rmse,
         "added": [v.label for v in last.versions[1:]],
@@ -289,7 +302,7 @@ def markdown_table(rows: list[dict]) -> str:
         mine = [row for row in rows if row["case"] == case]
         verdicts = ", ".join(f"{v}: {n}" for v, n in Counter(row["verdict"] for row in mine).items())
         ranks = [row["rank_of_true_effect"] for row in mine]
-        first = "—" if case in ("none", "inclusion") else f"{ranks.count(1)}/{len(mine)}"
+        first = f"{ranks.count(1)}/{len(mine)}" if true_effects(case) else "—"
         rmse, added = median(r["rmse_baseline"] for r in mine), median(r["rmse_with_true_effect"] for r in mine)
         own, carried = median(r["discretisation_sigma"] for r in mine), median(r.get("carried_sigma") for r in mine)
         seconds = median(r["seconds"] for r in mine)
@@ -334,11 +347,12 @@ def main() -> None:
     for seed in [] if args.summarise else range(args.seeds):  # seed by seed: a stopped run has every case
         for case in args.cases:
             if not (args.out / f"{case}_{seed}" / "row.json").exists():
-                if case not in fields:
-                    fields[case] = data_fields(
-                        config, case, points, args.mesh_dir, comm, args.out / f"data_{args.data}_{case}.npy"
+                source = data_case(case)
+                if source not in fields:
+                    fields[source] = data_fields(
+                        config, source, points, args.mesh_dir, comm, args.out / f"data_{args.data}_{source}.npy"
                     )
-                run_case(case, seed, fields[case], points, args, comm)
+                run_case(case, seed, fields[source], points, args, comm)
     rows = [
         json.loads((args.out / f"{case}_{s}" / "row.json").read_text())
         for case in args.cases

@@ -99,16 +99,17 @@ def write_noisy(
     noise: NoiseModel,
     out: Path | str,
     seed: int,
+    stated_sd: np.ndarray | None = None,
 ) -> list[Path]:
-    """Add noise drawn from ``noise`` (seeded) and write ``out/m_<j>.csv`` with sd columns."""
+    """Add noise drawn from ``noise`` (seeded) and write ``out/m_<j>.csv`` with sd columns:
+    ``noise.sd``, or ``stated_sd`` (3,) to mis-state it."""
     rng = np.random.default_rng(seed)
+    stated = noise.sd if stated_sd is None else np.asarray(stated_sd, float)
     paths = []
     for j, (field, alpha) in enumerate(zip(fields, designs)):
         noisy = field + noise.sample(points, (), rng)
         paths.append(
-            write_measurement(
-                Path(out) / f"m_{j}.csv", points, noisy, alpha, 1.0, np.broadcast_to(noise.sd, noisy.shape)
-            )
+            write_measurement(Path(out) / f"m_{j}.csv", points, noisy, alpha, 1.0, np.broadcast_to(stated, noisy.shape))
         )
     return paths
 

@@ -164,6 +164,31 @@ def test_understated_noise_is_reported_not_explained_by_an_effect(taylor_at_trut
     assert statement.consistent and abs(statement.moran_z) > 3
 
 
+def test_the_noise_estimate_keeps_the_carried_model_error_apart(linear_world, grid_xy):
+    """Noise twice the stated sd on top of a carried, correlated model error (1.5 stated sd):
+    the estimated factor is 2 (mean of 5 draws within 5 %), where sqrt(chi^2/dof) would give
+    sqrt((4 + 1.5^2) / (1 + 1.5^2)) = 1.39; without a model error the two agree."""
+    from inference.criticism.data import ModelError
+    from inference.criticism.diagnosis import noise_factor
+
+    stated = NoiseModel(np.full(3, 1e-4), 2.0, 0.3)
+    true = NoiseModel(2 * stated.sd, stated.length, stated.nugget)
+    mask, xy = np.ones((1, len(grid_xy)), bool), grid_xy[None]
+    error = ModelError(np.full((1, len(grid_xy), 3), 1.5e-4), length=6.0, nugget=0.25)
+    truth = linear_world(np.zeros(len(linear_world.names)))
+    factors = []
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        y = truth + true.sample(grid_xy, (1,), rng) + error.sample(grid_xy, 0, mask[0], (1,), rng)
+        data = Data(y, mask, xy, stated, error)
+        factors.append(noise_factor(data, truth, data.n))
+    assert np.mean(factors) == pytest.approx(2.0, rel=0.05), factors
+    y = truth + true.sample(grid_xy, (1,), np.random.default_rng(9))
+    plain = Data(y, mask, xy, stated)
+    r = plain.whiten(y - truth)
+    assert noise_factor(plain, truth, plain.n) == pytest.approx(np.sqrt(r @ r / plain.n), rel=1e-12)
+
+
 def test_linearised_fe_model_is_accurate_near_its_expansion_point(taylor_at_truth):
     """The Taylor model must reproduce FE at a nearby point (2 % of the prior box away)."""
     forward, _ = taylor_at_truth

@@ -146,6 +146,11 @@ class Data:
     def with_model_error(self, model_error: ModelError | None) -> Data:
         return Data(self.fields, self.masks, self.xy, self.noise, model_error)
 
+    def with_noise_factor(self, factor: float) -> Data:
+        """The same data with the stated noise sd multiplied by ``factor`` (the model error kept)."""
+        noise = NoiseModel(self.noise.sd * factor, self.noise.length, self.noise.nugget)
+        return Data(self.fields, self.masks, self.xy, noise, self.model_error)
+
     @property
     def n(self) -> int:
         return int(self.masks.sum()) * 3

@@ -8,15 +8,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 from inference.criticism.calibration import Calibration, calibrate
-from inference.criticism.data import Data, NoiseModel, stack
+from inference.criticism.data import Data, stack
 from inference.criticism.discretisation import MESH_RESOLVED_SIGMA
 from inference.criticism.metrics import (
     Hotspot,
     RegionResidual,
     ResidualMetrics,
+    morans_i,
     rank_regions,
     region_heterogeneity,
     residual_hotspot,
@@ -58,26 +59,51 @@ def check_noise_statement(
 ) -> tuple[Calibration, Data, NoiseStatement]:
     """Is a structured residual only noise larger than stated?
 
-    Neither Moran's I nor the spread over the regions depends on the residual's scale: a
-    residual that is larger than the stated noise (PPC p < metrics.ALPHA) but whose spatial
-    autocorrelation is that of the stated noise model (|z| < NOISE_STRUCTURE_Z) and whose mean
-    square is as even over the regions (membrane, edges, corners, far field; ``region``: the
-    membrane's half size and the edge band [mm]) as the noise model's (z < NOISE_STRUCTURE_Z)
-    is read as understated noise, not as missing physics (missing effects are smooth fields,
-    large Moran z, or peak at the membrane's edges and corners). The noise sd is then scaled by
-    sqrt(chi^2/dof) and the calibration repeated with it.
+    A residual that is larger than the stated noise (PPC p < metrics.ALPHA) is put down to
+    noise s times the stated sd (s from :func:`noise_factor`, the carried model error held as
+    it is) when, under that scaled noise model, its spatial autocorrelation is the noise's
+    (Moran |z| < NOISE_STRUCTURE_Z) and its mean square is as even over the regions (membrane,
+    edges, corners, far field; ``region``: the membrane's half size and the edge band [mm]) as
+    the noise model's (z < NOISE_STRUCTURE_Z): missing effects are smooth fields (large Moran
+    z) or peak at the membrane's edges and corners. The calibration is then repeated with the
+    scaled noise. (Both tests are scale-free without a model error; with one, noise and
+    carried error weigh differently from point to point, so they are made under the scaled
+    noise model, not the stated one.)
     """
     metrics = residual_metrics(cal, data)
     statement = NoiseStatement(True, 1.0, metrics.moran_z, metrics.chi2_per_dof)
-    if not metrics.structured or abs(metrics.moran_z) >= NOISE_STRUCTURE_Z:
+    if not metrics.structured:
         return cal, data, statement
-    statement.heterogeneity_z = region_heterogeneity(cal, data, *region)
+    factor = noise_factor(data, cal.model_fields, metrics.dof)
+    scaled = data.with_noise_factor(factor)
+    statement.moran_z = morans_i(scaled.standardised(cal.model_fields), scaled).z
+    if abs(statement.moran_z) >= NOISE_STRUCTURE_Z:
+        return cal, data, statement
+    statement.heterogeneity_z = region_heterogeneity(cal, scaled, *region)
     if statement.heterogeneity_z >= NOISE_STRUCTURE_Z:
         return cal, data, statement
-    statement.consistent, statement.factor = False, math.sqrt(metrics.chi2_per_dof)
-    noise = NoiseModel(data.noise.sd * statement.factor, data.noise.length, data.noise.nugget)
-    data = Data(data.fields, data.masks, data.xy, noise, data.model_error)
-    return calibrate(forward, data, cal.x, cal.free, cal.label, max_iterations), data, statement
+    statement.consistent, statement.factor = False, factor
+    return calibrate(forward, scaled, cal.x, cal.free, cal.label, max_iterations), scaled, statement
+
+
+def noise_factor(data: Data, model_fields: np.ndarray, dof: int) -> float:
+    """The factor on the stated noise sd at which the residual's chi^2 equals ``dof``, the
+    carried model error held as it is: sqrt(chi^2/dof) without one; with one, the root of
+    chi^2(s) = dof (chi^2 falls monotonically as the noise grows). 1 when chi^2 <= dof."""
+
+    def chi2(factor: float) -> float:
+        r = stack(data.with_noise_factor(factor).whitened_residual(model_fields), data.masks)
+        return float(r @ r)
+
+    at_stated = chi2(1.0)
+    if at_stated <= dof:
+        return 1.0
+    if data.model_error is None:
+        return math.sqrt(at_stated / dof)
+    noise_only = Data(data.fields, data.masks, data.xy, data.noise)
+    r = stack(noise_only.whitened_residual(model_fields), data.masks)
+    upper = math.sqrt(max(float(r @ r), at_stated) / dof)  # chi^2(s) <= chi^2 without the model error / s^2
+    return math.exp(optimize.brentq(lambda log_s: chi2(math.exp(log_s)) - dof, 0.0, math.log(upper), xtol=1e-4))
 
 
 # -- diagnosis -------------------------------------------------------------------------------
@@ -280,7 +306,7 @@ def verdict(
     (:func:`mesh_error_factor`)."""
     if not metrics.structured:
         return (
-            f"The residual is consistent with the stated noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
+            f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
             f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f}): "
             "no missing effect is needed."
         )

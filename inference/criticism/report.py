@@ -525,6 +525,17 @@ class ReportDiscretisation:
 
 
 @dataclasses.dataclass(frozen=True)
+class ReportNoiseStatement:
+    """Whether the stated noise held (see :class:`NoiseStatement`): ``factor`` is the estimated
+    sd over the stated one (1 when consistent), ``used_sd`` the sd the check went on with
+    (xx, yy, xy)."""
+
+    consistent: bool
+    factor: float
+    used_sd: list[float]
+
+
+@dataclasses.dataclass(frozen=True)
 class ReportFailedRun:
     """An FE run that did not converge: its parameter point by name and the solver's message."""
 
@@ -542,6 +553,7 @@ class ReportFile:
             without ``--add``).
         versions: the baseline, then one version per added effect.
         discretisation: None if not estimated (``--no-discretisation``).
+        noise_statement: whether the stated noise held, and the sd the check went on with.
         failed_runs: the FE runs that did not converge.
         timings: wall seconds and FE runs of each phase.
     """
@@ -550,6 +562,7 @@ class ReportFile:
     next_round: ReportDiagnosis | None
     versions: list[ReportVersion]
     discretisation: ReportDiscretisation | None
+    noise_statement: ReportNoiseStatement
     failed_runs: list[ReportFailedRun]
     timings: CheckTimings
 
@@ -573,6 +586,7 @@ def _report_file(d: dict) -> ReportFile:
         next_round=None if d["next_round"] is None else ReportDiagnosis.from_json(d["next_round"]),
         versions=[ReportVersion.from_json(v) for v in d["versions"]],
         discretisation=None if d["discretisation"] is None else ReportDiscretisation.from_json(d["discretisation"]),
+        noise_statement=ReportNoiseStatement(**d["noise_statement"]),
         failed_runs=[ReportFailedRun(**f) for f in d["failed_runs"]],
         timings=CheckTimings(**d["timings"]),
     )
