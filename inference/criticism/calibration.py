@@ -71,6 +71,21 @@ class Calibration:
         }
 
 
+def held_at_bounds(z: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(k,) True for the parameters at a bound of the unit box that chi^2's descent (-g, g the
+    gradient's half J^T r) would push out of it: they stay where they are for the step, which
+    is then solved over the others (a projected Gauss-Newton step; clipping the full step
+    instead distorts the other parameters' step and makes Levenberg-Marquardt crawl)."""
+    return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0))
+
+
+def gauss_newton_gain(A: np.ndarray, g: np.ndarray, moving: np.ndarray) -> float:
+    """The chi^2 decrease g^T A^-1 g that the undamped Gauss-Newton step over the ``moving``
+    parameters promises in the linearised model (A = J^T J, g = J^T r)."""
+    gm = g[moving]
+    return float(gm @ np.linalg.lstsq(A[np.ix_(moving, moving)], gm, rcond=1e-12)[0]) if gm.size else 0.0
+
+
 class CalibrationError(RuntimeError):
     """The forward model has no solution at the calibration's starting point."""
 
@@ -141,13 +156,16 @@ def calibrate(
 ) -> Calibration:
     """Least-squares fit of the free parameters (within their prior box) to the whitened data.
 
-    Levenberg–Marquardt in the unit box of the prior (steps projected onto the box). A trial
+    Levenberg–Marquardt in the unit box of the prior: parameters at a bound that the descent
+    pushes outward are held for the step (:func:`held_at_bounds`), the rest clipped to the box. A trial
     point where the FE model does not converge is a rejected step: the damping grows (the
     step shrinks), the point is recorded in ``Calibration.rejected`` and the fit continues.
     Jacobians are exact when the forward model has derivatives (forward sensitivities: one
     run per trial point), else forward differences of ``step`` in the unit box (one run per
     free parameter, spread over MPI ranks by the forward model). The fit stops once a step
-    lowers chi^2 by less than ``CHI2_TOLERANCE`` or after ``max_iterations`` trial steps.
+    lowers chi^2 by less than ``CHI2_TOLERANCE``, or before a step when the undamped
+    Gauss-Newton step promises less than that (:func:`gauss_newton_gain`: no run to find it
+    out), or after ``max_iterations`` trial steps.
     Returns the Laplace posterior at the optimum. Longer than a screen: one Levenberg-Marquardt
     loop with its rejected-step bookkeeping, kept whole to read as the algorithm.
 
@@ -164,7 +182,12 @@ def calibrate(
     chi2_path = [float(r @ r)]
     for _ in range(max_iterations):
         A, g = J.T @ J, J.T @ r
-        dz = np.linalg.solve(A + damping * np.diag(np.diag(A) + 1e-12 * np.trace(A)), -g)
+        moving = ~held_at_bounds(z, g)
+        if gauss_newton_gain(A, g, moving) < CHI2_TOLERANCE:  # even the full step would not be visible
+            break
+        dz = np.zeros_like(z)
+        Am = A[np.ix_(moving, moving)]
+        dz[moving] = np.linalg.solve(Am + damping * np.diag(np.diag(Am) + 1e-12 * np.trace(A)), -g[moving])
         z_new = np.clip(z + dz, 0, 1)
         if np.max(np.abs(z_new - z)) < 1e-8:
             break
