@@ -1,6 +1,6 @@
 """Cost and agreement of the discretisation estimate's refined run, by refined mesh.
 
-    mpirun -n 2 python benchmarks/refined_estimate.py [--config benchmarks/configs/small_q2.toml]
+    mpirun -n 2 python benchmarks/refined_estimate.py [--config check]
                                                       [--variants all but-skin none] [--out FILE]
 
 The check's two-mesh estimate (docs/criticism.md section 2) runs the calibrated point once on
@@ -58,7 +58,7 @@ def main() -> None:
     from skinfem.config import load_config
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default=str(HERE / "configs" / "small_q2.toml"))
+    parser.add_argument("--config", default="check")
     parser.add_argument("--variants", nargs="+", choices=list(LAYERS), default=list(LAYERS))
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument("--out", type=Path, default=HERE / "results" / "refined_estimate.json")

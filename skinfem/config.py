@@ -1,7 +1,7 @@
 """Typed, validated configuration of a skinid model and sweep (TOML).
 
 A configuration is read from a TOML file or named after a built-in preset
-(``skinfem/presets/<name>.toml``: ``small``, ``study``, ``paper``). Every key is checked on
+(``skinfem/presets/<name>.toml``: ``small``, ``study``, ``paper``, ``check``, ``converged``). Every key is checked on
 load; a wrong or unknown key raises :class:`ConfigError` with the key's dotted name.
 
 Units: lengths in mm, moduli in MPa, angles in degrees (converted to radians in code).
