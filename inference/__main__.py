@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 from pathlib import Path
@@ -233,6 +234,7 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
     parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
     parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines (phases, calibration steps) on stderr")
 
 
 def _measurement_parser(parser: argparse.ArgumentParser) -> None:
@@ -727,6 +729,17 @@ def _check_check_options(args) -> None:
         raise ValueError(f"--confirm must be >= 0, got {args.confirm}")
 
 
+def show_progress(logger: str) -> None:
+    """Write the INFO lines of ``logger`` to stderr with the time of day (one rank only; once
+    per process however often a command runs in it)."""
+    log = logging.getLogger(logger)
+    log.setLevel(logging.INFO)
+    if not log.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s  %(message)s", datefmt="%H:%M:%S"))
+        log.addHandler(handler)
+
+
 def cmd_check(args) -> None:
     from mpi4py import MPI
 
@@ -737,6 +750,8 @@ def cmd_check(args) -> None:
 
     comm = MPI.COMM_WORLD
     settings, config, bounds, emulator, measurements, noise = collective(comm, lambda: check_inputs(args))
+    if comm.rank == 0 and not args.quiet:
+        show_progress("inference.criticism")
     if args.force:  # the inputs are read and checked: start over, without the old report's FE runs
         on_root(comm, lambda: remove_output(args.out))
     result = run_check(

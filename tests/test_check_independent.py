@@ -142,3 +142,6 @@ def test_understated_noise_is_estimated_beside_the_carried_mesh_error(small_conf
     assert "stated noise is inconsistent" in report.diagnosis.verdict
     assert "no missing effect is needed" in report.diagnosis.verdict
     assert not any(c.explains for c in report.diagnosis.candidates)
+    # the progress lines on stderr (rank 0 only): the phases and every calibration step
+    assert res.stderr.count("calibrating the baseline on Q1") == 1
+    assert "estimating the mesh's own error" in res.stderr and "baseline: chi^2" in res.stderr

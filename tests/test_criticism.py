@@ -109,6 +109,17 @@ def test_calibration_at_a_bound_equals_bounded_least_squares_in_few_runs(linear_
     assert len(cal.chi2_path) <= 3 and cal.fe_runs <= 3 * (1 + 5), (cal.chi2_path, cal.fe_runs)
 
 
+def test_every_trial_step_is_a_progress_line(linear_world, grid_xy, caplog):
+    """`skinid check` shows the calibration's progress: one INFO line per trial step, with chi^2
+    before and after (the CLI writes them to stderr on rank 0)."""
+    values = {name: v for name, v in zip(linear_world.names[:5], (7.0, -6.5, 1.0, -2.0, 0.5))}
+    with caplog.at_level("INFO", logger="inference.criticism"):
+        _, cal = linear_data(linear_world, grid_xy, values, seed=3)
+    lines = [r.getMessage() for r in caplog.records if r.name == "inference.criticism.calibration"]
+    assert len(lines) == len(cal.chi2_path) - 1  # no step rejected here
+    assert lines[0].startswith(f"baseline: chi^2 {cal.chi2_path[0]:,.1f} -> {cal.chi2_path[1]:,.1f}")
+
+
 def test_score_statistic_equals_the_fitted_chi2_drop_for_a_linear_model(linear_world, grid_xy):
     """For a linear Gaussian model the efficient score test and the likelihood ratio coincide
     (up to the two calibrations' stopping tolerance, each within CHI2_TOLERANCE of its optimum)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -9,6 +10,8 @@ import numpy as np
 
 from inference.criticism.data import Data, stack
 from inference.forward import ForwardModel
+
+log = logging.getLogger(__name__)
 
 # a calibration stops once a step lowers chi^2 by less than this: a gap to the optimum well under
 # 1 (one Laplace sd along the flattest direction) moves no verdict (Delta BIC threshold 6)
@@ -69,6 +72,13 @@ class Calibration:
         return {
             n: Estimate(float(self.x[i]), float(sd.get(n, 0.0))) for i, n in enumerate(self.names) if i in self.free
         }
+
+
+def _trial_outcome(chi2: float, chi2_new: float | None) -> str:
+    """One progress line's words for a trial step from chi^2 ``chi2`` (None: the run failed)."""
+    if chi2_new is None:
+        return f"chi^2 {chi2:,.1f}, trial step rejected (the FE run did not converge)"
+    return f"chi^2 {chi2:,.1f} -> {chi2_new:,.1f}" + (" (step rejected)" if chi2_new >= chi2 else "")
 
 
 def held_at_bounds(z: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -192,6 +202,7 @@ def calibrate(
         if np.max(np.abs(z_new - z)) < 1e-8:
             break
         r_new, J_new = problem.evaluate(z_new, step)
+        log.info("%s: %s", label, _trial_outcome(r @ r, None if r_new is None else r_new @ r_new))
         if r_new is None or r_new @ r_new >= r @ r:  # failed run or no decrease: a shorter step
             damping *= 10 if r_new is None else 4
             continue

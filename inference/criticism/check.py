@@ -10,6 +10,7 @@ missing after them (the next round) and returns every model version with its met
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from inference.criticism.discretisation import (
     REFINEMENTS,
     CorrectedForward,
     DiscretisationError,
+    describe_mesh,
     estimate,
     refined_config,
 )
@@ -36,6 +38,8 @@ from skinfem.dic import StrainGauge
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.parallel import on_root
 from surrogate.emulator import Emulator
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -210,6 +214,7 @@ def run_check(
     data = Data.from_points(measurements, noise)
     start, start_from = starting_point(forward, data, settings, emulator, measurements)
     timings.setup_s = time.perf_counter() - t0
+    log.info("calibrating the baseline on %s (start: %s)", describe_mesh(config), start_from)
     half = config.mesh.membrane_size / 2
     band = settings.band or 2 * config.mesh.h_membrane
 
@@ -221,6 +226,7 @@ def run_check(
         model, baseline, data, (half, band), settings.max_iterations // 2
     )
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
+    log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
     diagnosis = diagnose(
         model,
         baseline,
@@ -300,6 +306,7 @@ def _next_round(
     edge band [mm]."""
     if not settings.add:
         return None
+    log.info("diagnosing what is still missing with %s added", " and ".join(settings.add))
     next_round = diagnose(
         model,
         last,
@@ -344,6 +351,7 @@ def compare(
     if not settings.discretisation:
         return forward, data, baseline, None
     fine = refined()
+    log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
     fine.continue_from(forward)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data)
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
@@ -376,6 +384,7 @@ def add_versions(
             timings.add_reused_from_diagnose_s += cal.seconds
             timings.add_reused_from_diagnose_fe_runs += cal.fe_runs
         else:
+            log.info("adding %s", effect)
             cal = extend(model, previous, data, effect, max_iterations=settings.max_iterations)
         versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
     return versions
