@@ -729,12 +729,12 @@ def _check_check_options(args) -> None:
         raise ValueError(f"--confirm must be >= 0, got {args.confirm}")
 
 
-def show_progress(logger: str) -> None:
-    """Write the INFO lines of ``logger`` to stderr with the time of day (one rank only; once
-    per process however often a command runs in it)."""
+def show_progress(logger: str, shown: bool) -> None:
+    """Write the INFO lines of ``logger`` to stderr with the time of day if ``shown`` (one rank
+    only), else only its warnings; one handler per process however often a command runs in it."""
     log = logging.getLogger(logger)
-    log.setLevel(logging.INFO)
-    if not log.handlers:
+    log.setLevel(logging.INFO if shown else logging.WARNING)
+    if shown and not log.handlers:
         handler = logging.StreamHandler(sys.stderr)
         handler.setFormatter(logging.Formatter("%(asctime)s  %(message)s", datefmt="%H:%M:%S"))
         log.addHandler(handler)
@@ -750,8 +750,7 @@ def cmd_check(args) -> None:
 
     comm = MPI.COMM_WORLD
     settings, config, bounds, emulator, measurements, noise = collective(comm, lambda: check_inputs(args))
-    if comm.rank == 0 and not args.quiet:
-        show_progress("inference.criticism")
+    show_progress("inference.criticism", comm.rank == 0 and not args.quiet)
     if args.force:  # the inputs are read and checked: start over, without the old report's FE runs
         on_root(comm, lambda: remove_output(args.out))
     result = run_check(

@@ -109,6 +109,35 @@ def test_calibration_at_a_bound_equals_bounded_least_squares_in_few_runs(linear_
     assert len(cal.chi2_path) <= 3 and cal.fe_runs <= 3 * (1 + 5), (cal.chi2_path, cal.fe_runs)
 
 
+class GappyForward(LinearForward):
+    """The linear world with no solution (None) or a NaN field where mu's coordinate is above 2."""
+
+    def __init__(self, world, failure):
+        super().__init__(world.A, world.names, world.bounds, world.null)
+        self.failure = failure
+
+    def evaluate_many(self, points):
+        fields = super().evaluate_many(points)
+        return [self.failure(f) if x[0] > 2 else f for x, f in zip(points, fields)]
+
+
+@pytest.mark.parametrize("failure", [lambda f: None, lambda f: f * np.nan], ids=["no solution", "NaN field"])
+def test_failed_or_nan_trial_points_are_rejected_steps(linear_world, grid_xy, failure):
+    """The optimum (mu's coordinate 3) lies where the model fails: the fit stays where it
+    works, with a finite chi^2 (a NaN chi^2 compares False and was once taken as a decrease)."""
+    from inference.criticism.calibration import CalibrationError
+
+    data, _ = linear_data(linear_world, grid_xy, {linear_world.names[0]: 3.0}, seed=1)
+    gappy = GappyForward(linear_world, failure)
+    cal = calibrate(gappy, data, np.zeros(len(gappy.names)), list(range(5)), max_iterations=20)
+    assert np.isfinite(cal.chi2) and cal.x[0] <= 2.0
+    start = np.zeros(len(gappy.names))
+    start[0] = 2.5
+    with pytest.raises(CalibrationError, match=r"starting point \(mu = 2\.5, k1 = 0"):
+        calibrate(gappy, data, start, list(range(5)))
+    assert issubclass(CalibrationError, ValueError)  # the command line's one-line error path
+
+
 def test_every_trial_step_is_a_progress_line(linear_world, grid_xy, caplog):
     """`skinid check` shows the calibration's progress: one INFO line per trial step, with chi^2
     before and after (the CLI writes them to stderr on rank 0)."""

@@ -78,7 +78,7 @@ def _trial_outcome(chi2: float, chi2_new: float | None) -> str:
     """One progress line's words for a trial step from chi^2 ``chi2`` (None: the run failed)."""
     if chi2_new is None:
         return f"chi^2 {chi2:,.1f}, trial step rejected (the FE run did not converge)"
-    return f"chi^2 {chi2:,.1f} -> {chi2_new:,.1f}" + (" (step rejected)" if chi2_new >= chi2 else "")
+    return f"chi^2 {chi2:,.1f} -> {chi2_new:,.1f}" + ("" if chi2_new < chi2 else " (step rejected)")
 
 
 def held_at_bounds(z: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -89,15 +89,19 @@ def held_at_bounds(z: np.ndarray, g: np.ndarray) -> np.ndarray:
     return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0))
 
 
-def gauss_newton_gain(A: np.ndarray, g: np.ndarray, moving: np.ndarray) -> float:
-    """The chi^2 decrease g^T A^-1 g that the undamped Gauss-Newton step over the ``moving``
-    parameters promises in the linearised model (A = J^T J, g = J^T r)."""
-    gm = g[moving]
-    return float(gm @ np.linalg.lstsq(A[np.ix_(moving, moving)], gm, rcond=1e-12)[0]) if gm.size else 0.0
+def gauss_newton_gain(J: np.ndarray, r: np.ndarray) -> float:
+    """The chi^2 decrease |J dz|^2 that the undamped Gauss-Newton step dz = argmin |r + J dz|
+    promises in the linearised model (the part of r in the range of J (n, k); solved on J, not
+    on the normal equations, so that a weakly identified parameter still counts)."""
+    if J.shape[1] == 0:
+        return 0.0
+    dz = np.linalg.lstsq(J, -r, rcond=None)[0]
+    return float(np.sum((J @ dz) ** 2))
 
 
-class CalibrationError(RuntimeError):
-    """The forward model has no solution at the calibration's starting point."""
+class CalibrationError(ValueError):
+    """The forward model has no solution at the calibration's starting point (a bad start is
+    bad input: the command line reports it in one line)."""
 
 
 class _UnitBoxProblem:
@@ -118,30 +122,30 @@ class _UnitBoxProblem:
     def residuals(self, zs: list[np.ndarray]) -> list[np.ndarray | None]:
         """Stacked whitened residuals (n,) at each z; None (and recorded) where FE failed."""
         points = [self.point(z) for z in zs]
-        out = []
-        for z, x, fields in zip(zs, points, self.forward.evaluate_many(points)):
-            if fields is None:
-                self.rejected.append(x)
-                out.append(None)
-            else:
-                self.fields[z.tobytes()] = fields
-                out.append(stack(self.data.whitened_residual(fields), self.data.masks))
-        return out
+        return [self._residual(z, x, fields) for z, x, fields in zip(zs, points, self.forward.evaluate_many(points))]
 
-    def evaluate(self, z: np.ndarray, step: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    def _residual(self, z: np.ndarray, x: np.ndarray, fields: np.ndarray | None) -> np.ndarray | None:
+        """The stacked whitened residual of fields at z (x: its parameter point); None, and x
+        recorded as rejected, where the model has no solution or a non-finite one."""
+        r = None if fields is None else stack(self.data.whitened_residual(fields), self.data.masks)
+        if r is None or not np.all(np.isfinite(r)):
+            self.rejected.append(x)
+            return None
+        self.fields[z.tobytes()] = fields
+        return r
+
+    def evaluate(self, z: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Residual r (n,) and Jacobian d r / d z (n, k) at z: exact in one run when the forward
         model has derivatives, else the Jacobian is left to :meth:`jacobian` (None)."""
         if not self.forward.exact_jacobian:
             return self.residuals([z])[0], None
         x = self.point(z)
         (result,) = self.forward.evaluate_with_jacobian([x], [self.forward.names[i] for i in self.free])
-        if result is None:
-            self.rejected.append(x)
+        r = self._residual(z, x, None if result is None else result[0])
+        if r is None:
             return None, None
-        fields, derivative = result
-        self.fields[z.tobytes()] = fields
-        J = np.stack([-self.data.whiten(derivative[..., i]) * s for i, s in enumerate(self.span)], 1)
-        return stack(self.data.whitened_residual(fields), self.data.masks), J
+        J = np.stack([-self.data.whiten(result[1][..., i]) * s for i, s in enumerate(self.span)], 1)
+        return r, J
 
     def jacobian(self, z: np.ndarray, r0: np.ndarray, step: float) -> np.ndarray:
         """(n, k) one-sided differences d r / d z; the other side where a run failed (0 if both)."""
@@ -185,15 +189,16 @@ def calibrate(
     start, runs0 = time.perf_counter(), forward.runs
     problem = _UnitBoxProblem(forward, data, x0, free)
     z = np.clip((problem.base[free] - problem.lo) / problem.span, 0, 1)
-    r, J = problem.evaluate(z, step)
+    r, J = problem.evaluate(z)
     if r is None:
-        raise CalibrationError(f"the FE model does not converge at the starting point {problem.point(z)}")
+        at = ", ".join(f"{forward.names[i]} = {v:.4g}" for i, v in zip(free, problem.point(z)[free]))
+        raise CalibrationError(f"the FE model does not converge at the calibration's starting point ({at})")
     J, damping = problem.jacobian(z, r, step) if J is None else J, 1e-3
     chi2_path = [float(r @ r)]
     for _ in range(max_iterations):
         A, g = J.T @ J, J.T @ r
         moving = ~held_at_bounds(z, g)
-        if gauss_newton_gain(A, g, moving) < CHI2_TOLERANCE:  # even the full step would not be visible
+        if gauss_newton_gain(J[:, moving], r) < CHI2_TOLERANCE:  # even the full step would not be visible
             break
         dz = np.zeros_like(z)
         Am = A[np.ix_(moving, moving)]
@@ -201,9 +206,9 @@ def calibrate(
         z_new = np.clip(z + dz, 0, 1)
         if np.max(np.abs(z_new - z)) < 1e-8:
             break
-        r_new, J_new = problem.evaluate(z_new, step)
+        r_new, J_new = problem.evaluate(z_new)
         log.info("%s: %s", label, _trial_outcome(r @ r, None if r_new is None else r_new @ r_new))
-        if r_new is None or r_new @ r_new >= r @ r:  # failed run or no decrease: a shorter step
+        if r_new is None or not r_new @ r_new < r @ r:  # failed run, no decrease or NaN: a shorter step
             damping *= 10 if r_new is None else 4
             continue
         decrease = r @ r - r_new @ r_new

@@ -174,6 +174,7 @@ def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -
     (effects at their null values), by whitened chi^2; points whose FE run fails are skipped."""
     from scipy.stats import qmc
 
+    log.info("choosing the start: the best of %d spread points", n)
     unit = np.vstack([np.full(5, 0.5), qmc.LatinHypercube(d=5, seed=seed).random(n - 1)])
     points = [
         np.concatenate([forward.bounds[:5, 0] + u * np.ptp(forward.bounds[:5], axis=1), forward.null[5:]]) for u in unit
@@ -226,6 +227,9 @@ def run_check(
         model, baseline, data, (half, band), settings.max_iterations // 2
     )
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
+    if disc is not None and not noise_statement.consistent:  # the baseline was refitted with the estimated noise
+        disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
+    carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
     log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
     diagnosis = diagnose(
         model,
@@ -235,7 +239,7 @@ def run_check(
         half,
         band,
         settings.confirm,
-        carried_sigma=0.0 if disc is None else disc.remaining_sigma,
+        carried_sigma=carried,
         max_iterations=settings.max_iterations,
     )  # also the baseline's metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
@@ -243,7 +247,7 @@ def run_check(
     t0, runs0 = time.perf_counter(), forward.runs
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
-    next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), disc, timings)
+    next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), carried, timings)
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
     diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
     return CheckResult(
@@ -298,12 +302,12 @@ def _next_round(
     data: Data,
     settings: CheckSettings,
     region: tuple[float, float],
-    disc: DiscretisationError | None,
+    carried_sigma: float,
     timings: CheckTimings,
 ) -> Diagnosis | None:
     """With ``settings.add``: the diagnosis repeated on the last version, over the candidates not
     added (what is still missing); None otherwise. ``region``: the membrane's half size and the
-    edge band [mm]."""
+    edge band [mm]; ``carried_sigma``: RMS of the carried mesh error [sd of the noise used]."""
     if not settings.add:
         return None
     log.info("diagnosing what is still missing with %s added", " and ".join(settings.add))
@@ -314,7 +318,7 @@ def _next_round(
         [c for c in settings.candidates if c not in settings.add],
         *region,
         settings.confirm,
-        carried_sigma=0.0 if disc is None else disc.remaining_sigma,
+        carried_sigma=carried_sigma,
         added=settings.add,
         max_iterations=settings.max_iterations,
     )
@@ -357,6 +361,7 @@ def compare(
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
     # the amplitude starts at 1, away from its optimum: the full number of trial steps
+    log.info("calibrating the baseline again, corrected by a fitted multiple of the mesh's error")
     baseline = calibrate(model, data, x0, free, max_iterations=settings.max_iterations)
     disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
     timings.refined_fe_runs, timings.refined_s = fine.runs, disc.seconds

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Sequence
@@ -25,6 +26,8 @@ from inference.criticism.metrics import (
 )
 from inference.forward import ForwardModel
 from skinfem.effects import get_effect
+
+log = logging.getLogger(__name__)
 
 STRONG_EVIDENCE = 6.0  # Delta BIC above which a candidate is reported (Kass & Raftery: strong)
 MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess residual
@@ -83,6 +86,7 @@ def check_noise_statement(
     if statement.heterogeneity_z >= NOISE_STRUCTURE_Z:
         return cal, data, statement
     statement.consistent, statement.factor = False, factor
+    log.info("the residual reads as noise %.2f times the stated sd: calibrating again with it", factor)
     return calibrate(forward, scaled, cal.x, cal.free, cal.label, max_iterations), scaled, statement
 
 
@@ -103,6 +107,8 @@ def noise_factor(data: Data, model_fields: np.ndarray, dof: int) -> float:
     noise_only = Data(data.fields, data.masks, data.xy, data.noise)
     r = stack(noise_only.whitened_residual(model_fields), data.masks)
     upper = math.sqrt(max(float(r @ r), at_stated) / dof)  # chi^2(s) <= chi^2 without the model error / s^2
+    if chi2(upper) >= dof:  # only if the whitening's eigenvalue floor bent the bound
+        return upper
     return math.exp(optimize.brentq(lambda log_s: chi2(math.exp(log_s)) - dof, 0.0, math.log(upper), xtol=1e-4))
 
 
