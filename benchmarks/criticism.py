@@ -7,18 +7,18 @@
 
 Data the checked model did not make: quadratic elements (Q2) on a mesh graded differently from
 ``small`` (far size 4 mm, 3 muscle layers; ``--data q2-edge``: also two skin layers and 0.5 mm
-cells at the membrane edge, finer than the quadratic check mesh, preset ``check``), one
-material (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), two membranes
-((0.05, 0.05), (0.05, -0.05)), measured like DIC (1 mm strain window) at a jittered 1 mm point cloud with three holes over +-18 mm, plus
-correlated noise (sd 1e-3, 2 mm, 30 % uncorrelated), one noise draw per seed. Cases: no hidden
-effect, one hidden effect (pre-stretch 1.08 x 1.02 at 30 deg, muscle 2x stiffer, skin 1.5x
-thicker), two at once (``two_effects``: the pre-stretch and the stiffer muscle), or a defect
-outside the registry (``inclusion``: skin 8x stiffer in a 3.5 mm disc at (-13, 4) mm), or no
-effect with the noise understated (``understated_noise``: sd 2e-3 drawn, 1e-3 in the files). Each
-(case, seed) is one ``skinid check`` with the discretisation estimate and the true effect added
-as a version (``--add``), so that the RMSE after adding it is measured too; two effects take
-successive rounds (the first check's named effect added in a second check, whose next round
-should name the other).
+cells at the membrane edge, finer than the quadratic check mesh, preset ``check``), one material
+(mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), two membranes ((0.05, 0.05),
+(0.05, -0.05)), measured like DIC (1 mm strain window) at a jittered 1 mm point cloud with three
+holes over +-18 mm, plus correlated noise (sd 1e-3, 2 mm, 30 % uncorrelated), one noise draw per
+seed. Cases: no hidden effect, one hidden effect (pre-stretch 1.08 x 1.02 at 30 deg, muscle 2x
+stiffer, skin 1.5x thicker), two at once (``two_effects``: the pre-stretch and the stiffer
+muscle), or a defect outside the registry (``inclusion``: skin 8x stiffer in a 3.5 mm disc at
+(-13, 4) mm), or no effect with the noise understated (``understated_noise``: sd 2e-3 drawn,
+1e-3 in the files). Each (case, seed) is one ``skinid check`` with the discretisation estimate
+and the true effect added as a version (``--add``), so that the RMSE after adding it is measured
+too; two effects take successive rounds (the first check's named effect added in a second check,
+whose next round should name the other).
 
 Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``, and each case's
 noise-free data ``<out>/data_<data>_<case>.npy`` (delete them after changing a case); a rerun skips them,
