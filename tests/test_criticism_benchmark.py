@@ -43,3 +43,14 @@ def test_the_table_counts_verdicts_and_takes_medians_per_case():
     assert lines[3] == (
         "| pre_stretch | 3 | pre_stretch: 2, no missing effect: 1 | 2/3 | 3.00e-03 | 1.10e-03 | 4.0 / 1.5 | 1100 |"
     )
+
+
+def test_an_understated_noise_is_its_own_verdict_in_the_table():
+    rows = [
+        {**row("understated_noise", "no missing effect", None, 2e-3, None, 1000), "noise_factor": {"estimated": 1.93}},
+        {**row("understated_noise", "no missing effect", None, 2e-3, None, 1100), "noise_factor": {"estimated": 1.96}},
+        {**row("none", "no missing effect", None, 1e-3, None, 600), "noise_factor": {"estimated": 1.0}},
+    ]
+    lines = load_benchmark().markdown_table(rows).splitlines()
+    assert "| understated_noise | 2 | no missing effect (noise understated): 2 | — |" in lines[2]
+    assert "| none | 1 | no missing effect: 1 | — |" in lines[3]
