@@ -224,10 +224,11 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--refine",
-        choices=["uniform", "edge"],
-        default="uniform",
+        choices=["auto", "uniform", "edge"],
+        default="auto",
         help="the estimate's refined mesh: every size halved, or only the membrane-edge "
-        "cells (for fine or quadratic meshes); layers doubled in both",
+        "cells (for fine or quadratic meshes); layers doubled in both. auto: edge for a quadratic "
+        "mesh or one refined at the membrane edge, else uniform",
     )
     parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
     parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
@@ -665,6 +666,7 @@ def check_inputs(args):
     """Settings, configuration, prior box, emulator, measurements and noise of ``skinid check``."""
     from inference.criticism import NoiseModel
     from inference.criticism.check import CheckSettings
+    from inference.criticism.discretisation import default_refinement
     from inference.observations import check_field_of_view, read_measurement, thin
     from skinfem.config import PARAM_NAMES, config_from_toml, load_config
     from skinfem.dic import StrainGauge
@@ -674,6 +676,13 @@ def check_inputs(args):
 
     check_output(args.out, args.force, directory=True, resume=args.resume)
     _check_check_options(args)
+    emulator = None if args.emulator is None else Emulator.load(args.emulator)
+    if args.config is not None:
+        config = load_config(args.config)
+    elif emulator is not None:
+        config = config_from_toml(emulator.provenance.dataset_config)
+    else:
+        raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
     settings = CheckSettings(
         candidates=args.candidates or list(EFFECTS),
         add=args.add,
@@ -682,15 +691,8 @@ def check_inputs(args):
         gauge=StrainGauge(args.dic_window),
         spacing=args.spacing,
         discretisation=not args.no_discretisation,
-        refinement=args.refine,
+        refinement=default_refinement(config) if args.refine == "auto" else args.refine,
     )
-    emulator = None if args.emulator is None else Emulator.load(args.emulator)
-    if args.config is not None:
-        config = load_config(args.config)
-    elif emulator is not None:
-        config = config_from_toml(emulator.provenance.dataset_config)
-    else:
-        raise ValueError("give the mesh to check on with --config (a preset or TOML), or an --emulator")
     bounds = emulator.param_bounds if emulator is not None else config.sweep.box
     if args.start is not None:
         outside = [

@@ -465,6 +465,19 @@ def test_refinement_halves_every_size_including_the_membrane_edge(small_config):
     assert edge_cell_size(small_config.mesh) == 2.0 and refined_config(small_config).mesh.h_edge == 0.0
 
 
+def test_the_default_refinement_refines_only_the_edge_of_quadratic_or_edge_refined_meshes():
+    """`--refine auto`: the `check` and `converged` presets (Q2, edge cells) get the edge
+    refinement (216k dofs for `check`, layers doubled, instead of ~8 times as many), `small` the
+    uniform one."""
+    from inference.criticism.discretisation import default_refinement
+    from skinfem.config import load_config
+
+    assert default_refinement(load_config("small")) == "uniform"
+    assert default_refinement(load_config("check")) == "edge"
+    assert default_refinement(load_config("converged")) == "edge"
+    assert default_refinement(load_config("small").with_changes(mesh={"h_edge": 1.0})) == "edge"
+
+
 def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_an_effect(taylor_at_truth):
     """A check mesh whose error is 2.5 times its two-mesh shift (a refined mesh that is itself far
     from converged), with a shift that looks partly like a pre-stretch: corrected by the shift

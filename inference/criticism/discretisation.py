@@ -68,6 +68,12 @@ def refined_layers(config: Config) -> dict[str, int]:
     return layers
 
 
+def default_refinement(config: Config) -> str:
+    """``"edge"`` for a quadratic mesh or one refined at the membrane edge (uniform refinement
+    would multiply its dofs by about 8), else ``"uniform"``."""
+    return "edge" if config.solver.element_degree >= 2 or config.mesh.edge_refined else "uniform"
+
+
 def refined_config(config: Config, refinement: str = "uniform") -> Config:
     """The mesh of the two-mesh estimate, with the layers of :func:`refined_layers`, and
 
