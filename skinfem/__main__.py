@@ -20,7 +20,7 @@ from skinfem.mesh import DEFAULT_MESH_DIR
 
 def _add_config(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--config", default="small", help="TOML file or built-in preset (small, study, paper, converged)"
+        "--config", default="small", help="TOML file or built-in preset (small, study, paper, check, converged)"
     )
     parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
 
