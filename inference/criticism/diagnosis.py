@@ -104,8 +104,7 @@ def noise_factor(data: Data, model_fields: np.ndarray, dof: int) -> float:
         return 1.0
     if data.model_error is None:
         return math.sqrt(at_stated / dof)
-    noise_only = Data(data.fields, data.masks, data.xy, data.noise)
-    r = stack(noise_only.whitened_residual(model_fields), data.masks)
+    r = stack(data.with_model_error(None).whitened_residual(model_fields), data.masks)
     upper = math.sqrt(max(float(r @ r), at_stated) / dof)  # chi^2(s) <= chi^2 without the model error / s^2
     if chi2(upper) >= dof:  # only if the whitening's eigenvalue floor bent the bound
         return upper
