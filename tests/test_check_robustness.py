@@ -93,41 +93,44 @@ def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path
 DRIVER = """
 import sys
 from mpi4py import MPI
-import inference.criticism.check, inference.forward
+import inference.criticism.check, inference.forward, skinfem.model
 from inference.__main__ import main
 
-def fail_on_rank_1(*args, **kwargs):
-    if MPI.COMM_WORLD.rank == 1:
+def fail_on_ranks(*args, **kwargs):
+    if MPI.COMM_WORLD.rank in {ranks}:
         raise {error}("forced failure")
     return original(*args, **kwargs)
 
 original = {target}
-{patch} = fail_on_rank_1
+{target} = fail_on_ranks
 sys.exit(main(["check", "--config", "small", "--measurement", "{measurement}", "--out", "{out}",
                "--mesh-dir", "{mesh_dir}", "--increments", "1", "--no-discretisation"]))
 """
 
 
+FORCED = {  # where: (patched function, error raised, ranks that raise it)
+    "simulation": ("inference.forward.FEForward._simulate", "RuntimeError", (1,)),
+    "uncaught": ("inference.criticism.check.spread_start", "RuntimeError", (1,)),
+    "start": ("inference.forward.FEForward._simulate", "skinfem.model.ConvergenceError", (0, 1)),
+}
+
+
 @pytest.mark.mpi
 @pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
-@pytest.mark.parametrize("where", ["simulation", "uncaught"])
+@pytest.mark.parametrize("where", list(FORCED))
 def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path):
     """A simulation error on rank 1 is agreed (both ranks end with one line, exit 2); any other
-    exception on rank 1 aborts the job while rank 0 waits in a collective."""
+    exception on rank 1 aborts the job while rank 0 waits in a collective; a start where Newton
+    fails on every rank is one line in all (not one per rank), exit 2."""
     measurement = _measurement(tmp_path / "m.csv")
-    if where == "simulation":
-        target = patch = "inference.forward.FEForward._simulate"
-        error = "RuntimeError"
-    else:
-        target = patch = "inference.criticism.check.spread_start"
-        error = "RuntimeError"
+    target, error, ranks = FORCED[where]
     script = tmp_path / "driver.py"
     script.write_text(
         textwrap.dedent(
             DRIVER.format(
                 error=error,
+                ranks=ranks,
                 target=target,
-                patch=patch,
                 measurement=measurement,
                 out=tmp_path / "report",
                 mesh_dir=mesh_dir,
@@ -141,7 +144,10 @@ def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path)
     seconds = time.perf_counter() - start
     lines = [line for line in res.stderr.splitlines() if "error" in line]
     assert res.returncode != 0 and len(lines) == 1, res.stderr[-2000:]
-    assert "rank 1" in lines[0] and "forced failure" in lines[0]
+    if where == "start":
+        assert res.returncode == 2 and "starting point" in lines[0], res.stderr[-2000:]
+    else:
+        assert "rank 1" in lines[0] and "forced failure" in lines[0]
     assert seconds < 120
     assert not (tmp_path / "report" / "report.md").exists()
 

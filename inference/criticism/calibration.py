@@ -10,6 +10,7 @@ import numpy as np
 
 from inference.criticism.data import Data, stack
 from inference.forward import ForwardModel
+from skinfem.parallel import CollectiveError
 
 log = logging.getLogger(__name__)
 
@@ -99,9 +100,10 @@ def gauss_newton_gain(J: np.ndarray, r: np.ndarray) -> float:
     return float(np.sum((J @ dz) ** 2))
 
 
-class CalibrationError(ValueError):
+class CalibrationError(CollectiveError, ValueError):
     """The forward model has no solution at the calibration's starting point (a bad start is
-    bad input: the command line reports it in one line)."""
+    bad input: the command line reports it in one line). Raised on every rank, as the forward
+    model agrees on its failures across ranks, so that rank 0 alone prints it."""
 
 
 class _UnitBoxProblem:

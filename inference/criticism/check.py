@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from inference.criticism.calibration import Calibration, calibrate
+from inference.criticism.calibration import Calibration, CalibrationError, calibrate
 from inference.criticism.data import Data, NoiseModel
 from inference.criticism.diagnosis import Diagnosis, NoiseStatement, check_noise_statement, diagnose, extend
 from inference.criticism.discretisation import (
@@ -183,7 +183,7 @@ def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -
         np.inf if f is None else float(np.nansum(data.whitened_residual(f) ** 2)) for f in forward.evaluate_many(points)
     ]
     if not np.isfinite(min(chi2)):
-        raise ValueError("the FE model converged at none of the starting points")
+        raise CalibrationError("the FE model converged at none of the starting points")
     return points[int(np.argmin(chi2))]
 
 
