@@ -114,7 +114,7 @@ def linearised_fit(posterior, truth) -> LinearisedFit:
     error = (posterior.weights - mean).numpy().T.ravel()  # order (g, o), as the covariance
     jw = np.linalg.solve(chol, jac.transpose(1, 0, 2).reshape(-1, 5))
     white = np.linalg.solve(chol, error)
-    delta, absorbed = least_squares_shift(white, jw)
+    delta, _, absorbed = least_squares_shift(white, jw)
     return LinearisedFit(delta, np.linalg.inv(jw.T @ jw), (1 - absorbed) * float(white @ white), absorbed)
 
 

@@ -25,6 +25,13 @@ def build_parser() -> CommandParser:
     p.add_argument("--max-gp-rows", type=int, help="cap on GP training rows")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
     p.add_argument("--seed", type=int, default=0, help="random seed (GP rows, optimizer starts)")
+    p.add_argument(
+        "--cv-folds",
+        type=int,
+        default=5,
+        help="folds of training materials in the error model's cross-validation "
+        "(as many as training materials: leave one material out)",
+    )
     p.add_argument("--no-validate", action="store_true", help="skip validation on the test materials")
     p = sub.add_parser("validate", help="R² per PC and field errors on held-out materials")
     p.add_argument(
@@ -61,6 +68,8 @@ def check_fit_options(args) -> None:
         raise ValueError(f"--max-gp-rows must be >= 2, got {args.max_gp_rows}")
     if args.restarts < 0:
         raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+    if args.cv_folds < 2:
+        raise ValueError(f"--cv-folds must be >= 2, got {args.cv_folds}")
 
 
 def cmd_fit(args) -> None:
@@ -82,6 +91,7 @@ def cmd_fit(args) -> None:
         max_gp_rows=args.max_gp_rows,
         restarts=args.restarts,
         seed=args.seed,
+        cv_folds=args.cv_folds,
     )
     print(
         f"fitted {sum(emulator.n_weights.values())} GPs ({emulator.n_weights}) on "

@@ -35,7 +35,7 @@ import torch
 
 from skinfem.io import STATUS_OK, StrainDataset
 from skinfem.outputs import write_text
-from surrogate.error_model import HeldOutExcess, cross_validated_excess, design_correlation
+from surrogate.error_model import FOLDS, HeldOutExcess, cross_validated_excess, design_correlation
 from surrogate.gp import GPBank, fit_gps
 from surrogate.pca import StrainPCA
 
@@ -398,10 +398,11 @@ def _cross_validated_excess(
     subset: np.ndarray,
     seed: int,
     n_jobs: int,
+    folds: int,
 ):
-    """The held-out excess of :func:`surrogate.error_model.cross_validated_excess` over folds of
-    materials, each fold's GPs refitted from the fitted kernels (``box``: the inputs' (lower,
-    upper)); the material scale from each design's last frame."""
+    """The held-out excess of :func:`surrogate.error_model.cross_validated_excess` over ``folds``
+    folds of materials, each fold's GPs refitted from the fitted kernels (``box``: the inputs'
+    (lower, upper)); the material scale from each design's last frame."""
     lower, upper = box
     bank = GPBank.from_sklearn(gps)
     return cross_validated_excess(
@@ -413,7 +414,8 @@ def _cross_validated_excess(
         subset,
         rows.index[:, 2] == rows.index[:, 2].max(),
         lambda design: design_correlation(bank, (design - lower[5:]) / (upper[5:] - lower[5:])),
-        seed=seed,
+        folds,
+        seed,
     )
 
 
@@ -426,6 +428,7 @@ def fit_emulator(
     restarts: int = 2,
     seed: int = 0,
     n_jobs: int = -1,
+    cv_folds: int = FOLDS,
 ) -> Emulator:
     """Fit PCA on every training row and the GPs on a seeded subset of them.
 
@@ -434,6 +437,8 @@ def fit_emulator(
     Args:
         gp_fraction: share of the training rows the GPs are fitted on (paper: 0.1).
         max_gp_rows: cap on the number of GP rows (exact GP cost grows as rows^3).
+        cv_folds: folds of training materials of the error model's cross-validation (as many
+            as training materials: leave one material out).
 
     Longer than a screen: the fit's steps in order, then its provenance record field by field.
     """
@@ -456,7 +461,7 @@ def fit_emulator(
     pca_seconds = time.perf_counter() - start
     gps = fit_gps(x_unit, weights[subset], restarts=restarts, seed=seed, n_jobs=n_jobs)
     cv_start = time.perf_counter()
-    excess = _cross_validated_excess(gps, rows, weights, (lower, upper), subset, seed, n_jobs)
+    excess = _cross_validated_excess(gps, rows, weights, (lower, upper), subset, seed, n_jobs, cv_folds)
     cv_seconds = time.perf_counter() - cv_start
     provenance = EmulatorProvenance(
         dataset=data.path.resolve(),

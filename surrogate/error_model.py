@@ -189,22 +189,33 @@ def fit_material_scale(quadratic: np.ndarray, n_values: np.ndarray) -> tuple[flo
     return a, a - 1
 
 
-def least_squares_shift(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, float]:
+def least_squares_shift(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The shift delta (5,) whose J delta best explains the whitened errors e (n,) (J: (n, 5),
-    whitened the same way), and the share 1 - |e - J delta|^2 / |e|^2 of |e|^2 it absorbs."""
+    whitened the same way), the covariance (5, 5) of that fit's error, s^2 (J^T J)^+ with s^2 the
+    residual's mean square over n - 5, and the share 1 - |e - J delta|^2 / |e|^2 of |e|^2 it absorbs."""
     delta = np.linalg.lstsq(jacobian, error, rcond=None)[0]
     left = error - jacobian @ delta
-    return delta, 1 - float(left @ left) / float(error @ error)
+    fit_error = float(left @ left) / (error.size - 5) * np.linalg.pinv(jacobian.T @ jacobian)
+    return delta, fit_error, 1 - float(left @ left) / float(error @ error)
+
+
+def shift_covariance(shifts: np.ndarray, fit_errors: np.ndarray) -> np.ndarray:
+    """C (5, 5): the mean of delta_m delta_m^T over the materials' fitted shifts (m, 5) less the
+    mean covariance of their fit errors (m, 5, 5) (a fitted shift is the true one plus its fit
+    error), projected onto the positive semi-definite matrices. Without the correction a
+    direction the errors barely inform (a small column of J) gets the fit's noise as its C."""
+    raw = shifts.T @ shifts / len(shifts) - fit_errors.mean(0)
+    values, vectors = np.linalg.eigh((raw + raw.T) / 2)
+    return (vectors * np.clip(values, 0, None)) @ vectors.T
 
 
 def fit_parameter_shift(
     error: np.ndarray, variance: np.ndarray, jacobian: np.ndarray, materials: np.ndarray, scale: np.ndarray, tau2
 ) -> ParameterShift:
     """Each material's shift delta_m: the least-squares fit of J delta to its errors whitened by
-    the GP variance plus the held-out excess tau_g^2 s^2; C = mean delta_m delta_m^T (a slight
-    overestimate: each delta_m carries its own fit error, small with many rows per material);
-    the excess of the residual (scaled by n_m / (n_m - 5) for the 5 fitted values) refitted as
-    :func:`excess_variance`.
+    the GP variance plus the held-out excess tau_g^2 s^2; C from the shifts less their fit
+    errors (:func:`shift_covariance`); the excess of the residual (scaled by n_m / (n_m - 5)
+    for the 5 fitted values) refitted as :func:`excess_variance`.
 
     Args:
         error, variance: (n, G) held-out errors and GP variances (:func:`cross_validated_errors`).
@@ -212,19 +223,18 @@ def fit_parameter_shift(
         materials: (n,) material of each row; scale: (n,) load s; tau2: (G,) held-out excess.
     """
     sd = np.sqrt(variance + np.asarray(tau2) * scale[:, None] ** 2)
-    residual, shifts, absorbed = np.empty_like(error), [], []
+    residual, shifts, fit_errors, absorbed = np.empty_like(error), [], [], []
     for m in np.unique(materials):
         rows = materials == m
         e, jw = (error[rows] / sd[rows]).ravel(), (jacobian[rows] / sd[rows][..., None]).reshape(-1, 5)
-        delta, share = least_squares_shift(e, jw)
+        delta, fit_error, share = least_squares_shift(e, jw)
         shifts.append(delta)
+        fit_errors.append(fit_error)
         absorbed.append(share)
         residual[rows] = (error[rows] - jacobian[rows] @ delta) * np.sqrt(e.size / (e.size - 5))  # 5 fitted
-    delta = np.array(shifts)
     tau2_left = [excess_variance(residual[:, g], variance[:, g], scale) for g in range(error.shape[1])]
-    return ParameterShift(
-        tuple(map(tuple, (delta.T @ delta / len(delta)).tolist())), tuple(tau2_left), float(np.mean(absorbed))
-    )
+    covariance = shift_covariance(np.array(shifts), np.array(fit_errors))
+    return ParameterShift(tuple(map(tuple, covariance.tolist())), tuple(tau2_left), float(np.mean(absorbed)))
 
 
 def material_quadratic_forms(

@@ -548,6 +548,7 @@ CASES = {
     "fit-gp-fraction-zero": (f"{FIT} --gp-fraction 0", "--gp-fraction must be in (0, 1]", None),
     "fit-max-gp-rows-one": (f"{FIT} --max-gp-rows 1", "--max-gp-rows must be >= 2", None),
     "fit-restarts-negative": (f"{FIT} --restarts -1", "--restarts must be >= 0", None),
+    "fit-cv-folds-one": (f"{FIT} --cv-folds 1", "--cv-folds must be >= 2", None),
     "fit-missing-dataset": ("surrogate fit --data {tmp}/none.h5 --out {out}", "does not exist", None),
     # -- noise options
     "noise-length-negative": (

@@ -72,10 +72,13 @@ def test_cli_fit_and_validate(small_dataset, tmp_path):
         "0.2",
         "--restarts",
         "0",
+        "--cv-folds",
+        "12",
     )
     assert res.returncode == 0, res.stderr
     assert "R² per PC" in res.stdout
     fitted = Emulator.load(out)
+    assert fitted.provenance.held_out_excess.folds == len(fitted.provenance.train_materials) == 12  # one out
     assert fitted.n_weights == {"xx": 2, "yy": 2} and set(fitted.provenance.validation) == {"xx", "yy"}
     for name in ("validation.png", "explained_variance.png", "validation.json", "gp.npz", "pca.npz"):
         assert (out / name).exists()
