@@ -650,3 +650,26 @@ def assert_report_reads_back(result, out):
     (out / "older.json").write_text(json.dumps(older))
     with pytest.raises(ValueError, match="not a report.json of this version of skinid.*rerun the check"):
         read_report(out / "older.json")
+
+
+class CubicForward(LinearForward):
+    """fields = A (x + x^3 / 4): nonlinear, so that Levenberg-Marquardt takes several steps."""
+
+    def evaluate_many(self, points):
+        return super().evaluate_many([np.asarray(x) + np.asarray(x) ** 3 / 4 for x in points])
+
+
+def test_a_relative_tolerance_stops_a_fit_dominated_by_model_error_near_its_optimum(linear_world, grid_xy):
+    """Data 30 noise sd away from the model everywhere (chi^2 ~ 4e5, as an uncorrected mesh
+    error): the full fit walks until a step gains < 0.1; with a 1 % relative tolerance it stops
+    in fewer runs, within 2 % of the full fit's chi^2 (what the check's first calibration
+    needs before the mesh's error is estimated at its point)."""
+    world = CubicForward(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
+    data, _ = linear_data(linear_world, grid_xy, dict(zip(world.names[:5], (1.5, -1, 2, 0.3, -1.2))), seed=4)
+    offset = Data(data.fields + 3e-3, data.masks, data.xy, data.noise)
+    full = calibrate(world, offset, np.zeros(len(world.names)), list(range(5)), max_iterations=30)
+    near = calibrate(
+        world, offset, np.zeros(len(world.names)), list(range(5)), max_iterations=30, relative_tolerance=0.01
+    )
+    assert full.chi2 > 1e5 and len(full.chi2_path) >= 4
+    assert near.fe_runs < full.fe_runs and full.chi2 <= near.chi2 <= 1.02 * full.chi2, (full.chi2_path, near.chi2_path)

@@ -169,6 +169,7 @@ def calibrate(
     label: str = "baseline",
     max_iterations: int = 12,
     step: float = 1e-3,
+    relative_tolerance: float = 0.0,
 ) -> Calibration:
     """Least-squares fit of the free parameters (within their prior box) to the whitened data.
 
@@ -179,7 +180,8 @@ def calibrate(
     Jacobians are exact when the forward model has derivatives (forward sensitivities: one
     run per trial point), else forward differences of ``step`` in the unit box (one run per
     free parameter, spread over MPI ranks by the forward model). The fit stops once a step
-    lowers chi^2 by less than ``CHI2_TOLERANCE``, or before a step when the undamped
+    lowers chi^2 by less than ``CHI2_TOLERANCE`` (or ``relative_tolerance`` chi^2 if larger:
+    a fit that only needs to come near its optimum), or before a step when the undamped
     Gauss-Newton step promises less than that (:func:`gauss_newton_gain`: no run to find it
     out), or after ``max_iterations`` trial steps.
     Returns the Laplace posterior at the optimum. Longer than a screen: one Levenberg-Marquardt
@@ -200,7 +202,8 @@ def calibrate(
     for _ in range(max_iterations):
         A, g = J.T @ J, J.T @ r
         moving = ~held_at_bounds(z, g)
-        if gauss_newton_gain(J[:, moving], r) < CHI2_TOLERANCE:  # even the full step would not be visible
+        tolerance = max(CHI2_TOLERANCE, relative_tolerance * float(r @ r))
+        if gauss_newton_gain(J[:, moving], r) < tolerance:  # even the full step would not be visible
             break
         dz = np.zeros_like(z)
         Am = A[np.ix_(moving, moving)]
@@ -218,7 +221,7 @@ def calibrate(
         chi2_path.append(float(r @ r))
         if J_new is not None:
             J = J_new
-        if decrease < CHI2_TOLERANCE:  # chi^2 no longer moves by a statistically visible amount
+        if decrease < tolerance:  # chi^2 no longer moves by a statistically visible amount
             break
         if J_new is None:
             J = problem.jacobian(z, r, step)
