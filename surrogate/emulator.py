@@ -35,7 +35,7 @@ import torch
 
 from skinfem.io import STATUS_OK, StrainDataset
 from skinfem.outputs import write_text
-from surrogate.error_model import FOLDS, HeldOutExcess, cross_validated_excess, design_correlation
+from surrogate.error_model import FOLDS, HeldOutExcess, cross_validated_excess, design_correlation, material_folds
 from surrogate.gp import GPBank, fit_gps
 from surrogate.pca import StrainPCA
 
@@ -450,6 +450,7 @@ def fit_emulator(
     start = time.perf_counter()
     train = np.flatnonzero(data.split == 0)
     rows = TrainingRows.from_dataset(data, train)
+    material_folds(rows.index[:, 0], cv_folds)  # too few materials for the folds: refused before the fit
     cols = [COMPONENTS.index(c) for c in components]
     pcas = {c: StrainPCA(n_components).fit(rows.fields[..., k]) for c, k in zip(components, cols)}
     weights = np.concatenate([pcas[c].transform(rows.fields[..., k]) for c, k in zip(components, cols)], 1)

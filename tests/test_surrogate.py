@@ -88,6 +88,17 @@ def test_cli_fit_and_validate(small_dataset, tmp_path):
     assert res.returncode == 0 and "E_yy" in res.stdout
 
 
+def test_more_folds_than_training_materials_are_refused_before_the_gp_fit(small_dataset, monkeypatch):
+    import surrogate.emulator
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the GPs were fitted before the folds were checked")
+
+    monkeypatch.setattr(surrogate.emulator, "fit_gps", no_fit)
+    with pytest.raises(ValueError, match="needs >= 13 training materials, got 12"):
+        surrogate.emulator.fit_emulator(StrainDataset.open(small_dataset), cv_folds=13)
+
+
 def test_other_format_versions_are_refused(emulator, tmp_path):
     directory = emulator.save(tmp_path / "old")
     meta = json.loads((directory / "meta.json").read_text())
