@@ -78,7 +78,7 @@ def main() -> None:
     rows, shifts = [], {}
     for variant in args.variants:
         fine = FEForward(variant_config(config, variant), observations, bounds, args.mesh_dir, 2, comm)
-        fine.continue_from(forward)
+        fine.continue_from(forward, x)
         newton = []  # (seconds since start, Newton iteration, residual norm) on this rank
         fine.model.problem.solver.setMonitor(
             lambda snes, its, norm: newton.append((round(time.perf_counter() - start, 1), its, float(norm)))

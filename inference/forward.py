@@ -246,10 +246,13 @@ class FEForward(ForwardModel):
             self.continuation.record(j, states)
         return out, continued
 
-    def continue_from(self, other: FEForward) -> None:
-        """Start this model's next simulations from ``other``'s last converged states (another
-        mesh of the same setup, e.g. the refined mesh of a discretisation estimate), each rank
-        from the designs it ran: Newton from the interpolated fields instead of a load ramp.
+    def continue_from(self, other: FEForward, x: np.ndarray) -> None:
+        """Start this model's next simulations, at or near ``x``, from ``other``'s last converged
+        states (another mesh of the same setup, e.g. the refined mesh of a discretisation
+        estimate), each rank from the designs it runs: Newton from the interpolated fields
+        instead of a load ramp. A design ``other`` holds no states for (its fields came from
+        ``cache_dir``, e.g. in a resumed check) is first solved by ``other`` at ``x``: one run on
+        its mesh instead of a ramp on this one.
 
         Newton is then Newton–LU, up to ``TRANSFER_ITERATIONS`` per step of a residual homotopy
         (:meth:`skinfem.model.SkinModel.solve_frames`): from another mesh's fields GMRES
@@ -258,6 +261,7 @@ class FEForward(ForwardModel):
         9), while on a refined mesh a load ramp costs more."""
         if self.continuation is None or other.continuation is None:
             return
+        other._solve_designs_without_states(x)
 
         def interpolate():
             for j in other.continuation.designs():
@@ -265,6 +269,17 @@ class FEForward(ForwardModel):
 
         collective(self.comm, interpolate)
         self.transferred = True
+
+    def _solve_designs_without_states(self, x: np.ndarray) -> None:
+        """Run at ``x`` each design that this rank runs for a single point (``j`` = rank mod
+        ranks) and holds no converged states for; a failed run leaves it without (then ramped)."""
+        key = self._encode(x, ())
+        mine = [j for j in range(self.comm.rank, len(self.designs), self.comm.size)]
+        missing = [j for j in mine if j not in self.continuation.designs()]
+        start = time.perf_counter()
+        collective(self.comm, lambda: [self._run(key, j) for j in missing])
+        self.runs += self.comm.allreduce(len(missing))
+        self.seconds += time.perf_counter() - start
 
     def _continuation_solver(self) -> tuple[int, Factorisation]:
         """(Newton iterations, first factorisation) of a continued solve before it is ramped:

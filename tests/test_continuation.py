@@ -172,12 +172,38 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
     coarse.evaluate_with_jacobian([x], coarse.names[:5])
     fine_config = refined_config(small_config, "edge")
     fine = two_design_forward(fine_config, mesh_dir, continuation=True)
-    fine.continue_from(coarse)
     x[0] *= 1.05  # the estimate runs at the calibrated point, near the last one
+    fine.continue_from(coarse, x)
     f_continued = fine(x)
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     assert fine.continued == 2
     np.testing.assert_allclose(f_continued, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
+
+
+@pytest.mark.slow
+def test_a_refined_mesh_continues_from_a_check_mesh_whose_fields_came_from_its_cache(small_config, mesh_dir, tmp_path):
+    """In a resumed check the check mesh's fields come from ``cache_dir`` and it holds no
+    converged states: it solves the point once (one run per design) and the refined mesh still
+    continues from its fields instead of ramping."""
+    from inference.criticism.discretisation import refined_config
+
+    def check_mesh():
+        model = two_design_forward(small_config, mesh_dir, continuation=True)
+        model.cache_dir = tmp_path
+        return model
+
+    first = check_mesh()
+    x = first.null.copy()
+    x[:5] = TRUTH
+    first(x)  # the interrupted check wrote its cache
+    coarse = check_mesh()
+    coarse(x)
+    assert coarse.reused == 2 and coarse.runs == 0  # the resumed model read both designs
+    fine = two_design_forward(refined_config(small_config, "edge"), mesh_dir, continuation=True)
+    fine.continue_from(coarse, x)
+    assert coarse.runs == 2
+    fine(x)
+    assert fine.continued == 2
 
 
 def test_a_residual_homotopy_reaches_the_ramped_equilibrium_where_newton_fails(small_model):

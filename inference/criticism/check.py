@@ -362,7 +362,7 @@ def compare(
         return forward, data, baseline, None
     fine = refined()
     log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
-    fine.continue_from(forward)  # Newton from the check mesh's fields, not a load ramp
+    fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data)
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
