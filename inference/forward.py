@@ -22,6 +22,7 @@ Two implementations share this interface:
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import time
 from collections.abc import Sequence
@@ -38,6 +39,8 @@ from skinfem.effects import EFFECTS, effect_parameters
 from skinfem.model import Factorisation
 from skinfem.parallel import collective
 from skinfem.sensitivity import DisplacementSensitivity
+
+log = logging.getLogger(__name__)
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 CONTINUATION_ITERATIONS = 8  # Newton iterations from a nearby point's states before ramping instead
@@ -238,6 +241,12 @@ class FEForward(ForwardModel):
             params, design, start[1], start[0], measure, at_reference, *self._continuation_solver()
         )
         if not continued:
+            if start is not None and self.transferred:  # the costly case: a full ramp on a fine mesh
+                log.warning(
+                    "design (%g, %g): Newton from another mesh's fields did not converge; ramping the load",
+                    design.alpha11,
+                    design.alpha22,
+                )
             out[:] = 0.0
             states.frames.clear()
             states.sensitivities.clear()

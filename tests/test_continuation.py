@@ -206,6 +206,28 @@ def test_a_refined_mesh_continues_from_a_check_mesh_whose_fields_came_from_its_c
     assert fine.continued == 2
 
 
+@pytest.mark.slow
+def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, mesh_dir, monkeypatch, caplog):
+    """A transfer whose Newton cannot converge (one iteration per homotopy step) falls back to
+    the load ramp: the ramped fields, and a warning naming the design (the ramp is what makes
+    a refined run slow)."""
+    import inference.forward
+    from inference.criticism.discretisation import refined_config
+
+    coarse = two_design_forward(small_config, mesh_dir, continuation=True)
+    x = coarse.null.copy()
+    x[:5] = TRUTH
+    fine_config = refined_config(small_config, "edge")
+    fine = two_design_forward(fine_config, mesh_dir, continuation=True)
+    fine.continue_from(coarse, x)
+    monkeypatch.setattr(inference.forward, "TRANSFER_ITERATIONS", 1)
+    f_fine = fine(x)
+    assert fine.continued == 0
+    assert "design (-0.05, 0.05): Newton from another mesh's fields did not converge" in caplog.text
+    f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
+    np.testing.assert_allclose(f_fine, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
+
+
 def test_a_residual_homotopy_reaches_the_ramped_equilibrium_where_newton_fails(small_model):
     """From zero displacement at the full load Newton capped at 4 iterations fails (the ramp's
     first increment, a tenth of the load, takes 4); the residual homotopy R(u) = (1 - s) R(0),
