@@ -242,10 +242,14 @@ class FEForward(ForwardModel):
         )
         if not continued:
             if start is not None and self.transferred:  # the costly case: a full ramp on a fine mesh
+                steps = ", ".join(
+                    f"s = {s:g}: {its} its{'' if ok else ' (failed)'}" for s, ok, its in model.homotopy_steps
+                )
                 log.warning(
-                    "design (%g, %g): Newton from another mesh's fields did not converge; ramping the load",
+                    "design (%g, %g): Newton from another mesh's fields did not converge (homotopy %s); ramping the load",
                     design.alpha11,
                     design.alpha22,
+                    steps,
                 )
             out[:] = 0.0
             states.frames.clear()

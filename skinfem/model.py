@@ -143,6 +143,7 @@ class SkinModel:
         self.problem = self._nonlinear_problem()
         self.factorizations = 0  # of the current simulation
         self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
+        self.homotopy_steps: list[tuple[float, bool, int]] = []  # (s tried, converged, Newton its) of the last homotopy
         self.strain_sampler = self._observed_strain(terms)
         self.setup_seconds = time.perf_counter() - t0
 
@@ -411,6 +412,7 @@ class SkinModel:
         snes.computeFunction(self.problem.x, residual0)
         rhs = residual0.duplicate()
         s, step, cutbacks = 0.0, 1.0, 0
+        self.homotopy_steps = []
         self._set_snes_option("snes_linesearch_type", "bt")
         try:
             while s < 1.0:
@@ -418,7 +420,9 @@ class SkinModel:
                 saved = x.copy()
                 residual0.copy(rhs)
                 rhs.scale(1.0 - s_new)
-                if self._newton(Factorisation.EVERY_STEP, None if s_new == 1.0 else rhs)[0]:
+                converged, its, _ = self._newton(Factorisation.EVERY_STEP, None if s_new == 1.0 else rhs)
+                self.homotopy_steps.append((s_new, converged, its))
+                if converged:
                     s, step = s_new, 2 * step
                     continue
                 x[:] = saved

@@ -223,7 +223,10 @@ def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, 
     monkeypatch.setattr(inference.forward, "TRANSFER_ITERATIONS", 1)
     f_fine = fine(x)
     assert fine.continued == 0
-    assert "design (-0.05, 0.05): Newton from another mesh's fields did not converge" in caplog.text
+    assert (
+        "design (-0.05, 0.05): Newton from another mesh's fields did not converge (homotopy s = 1: 1 its" in caplog.text
+    )
+    assert "s = 0.0625: 1 its (failed)); ramping the load" in caplog.text  # four halvings, then the ramp
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     np.testing.assert_allclose(f_fine, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
 
