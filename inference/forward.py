@@ -107,6 +107,18 @@ class FailedRun:
     message: str
 
 
+def _warn_of_ramp(design, homotopy_steps: list[tuple[float, bool, int]]) -> None:
+    """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
+    fine mesh), with the residual homotopy's steps: (s tried, converged, Newton iterations)."""
+    steps = ", ".join(f"s = {s:g}: {its} its{'' if ok else ' (failed)'}" for s, ok, its in homotopy_steps)
+    log.warning(
+        "design (%g, %g): Newton from another mesh's fields did not converge (homotopy %s); ramping the load",
+        design.alpha11,
+        design.alpha22,
+        steps,
+    )
+
+
 class FEForward(ForwardModel):
     """The FE model with every candidate effect, measured by DIC at the observations' points.
 
@@ -242,15 +254,7 @@ class FEForward(ForwardModel):
         )
         if not continued:
             if start is not None and self.transferred:  # the costly case: a full ramp on a fine mesh
-                steps = ", ".join(
-                    f"s = {s:g}: {its} its{'' if ok else ' (failed)'}" for s, ok, its in model.homotopy_steps
-                )
-                log.warning(
-                    "design (%g, %g): Newton from another mesh's fields did not converge (homotopy %s); ramping the load",
-                    design.alpha11,
-                    design.alpha22,
-                    steps,
-                )
+                _warn_of_ramp(design, model.homotopy_steps)
             out[:] = 0.0
             states.frames.clear()
             states.sensitivities.clear()
