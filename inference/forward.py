@@ -291,7 +291,7 @@ class FEForward(ForwardModel):
         """Run at ``x`` each design that this rank runs for a single point (``j`` = rank mod
         ranks) and holds no converged states for; a failed run leaves it without (then ramped)."""
         key = self._encode(x, ())
-        mine = [j for j in range(self.comm.rank, len(self.designs), self.comm.size)]
+        mine = range(self.comm.rank, len(self.designs), self.comm.size)
         missing = [j for j in mine if j not in self.continuation.designs()]
         start = time.perf_counter()
         collective(self.comm, lambda: [self._run(key, j) for j in missing])
