@@ -104,10 +104,20 @@ def laplace_inverse_mass(posterior: SkinPosterior, mode: np.ndarray, floor: floa
 
 FIRST_WINDOW = 100  # fewest warm-up draws a mass-matrix estimate may replace the Laplace metric with
 MAX_TREE_DEPTH, TARGET_ACCEPT = 8, 0.8
+# A run whose share of divergent transitions exceeds RESAMPLE_SHARE is run again at
+# RESAMPLE_ACCEPT (smaller leapfrog steps). Unknown noise (HalfCauchy) with a few weights per
+# sigma makes a funnel: where sigma is small the emulator's error floor alone sets the
+# parameters' widths (theta's 20x narrower than where sigma is large), and a step size adapted
+# to one end diverges at the other (docs/inference.md).
+RESAMPLE_SHARE, RESAMPLE_ACCEPT = 0.005, 0.95
 
 
 def _nuts_kernel(
-    posterior: SkinPosterior, inverse_mass: np.ndarray, potential_fn=None, first_window: int = FIRST_WINDOW
+    posterior: SkinPosterior,
+    inverse_mass: np.ndarray,
+    potential_fn=None,
+    first_window: int = FIRST_WINDOW,
+    target_accept: float = TARGET_ACCEPT,
 ):
     """Pyro's NUTS on ``potential_fn`` (default ``posterior.potential``) whose warm-up starts
     from ``inverse_mass``, through Pyro's public interface only.
@@ -152,7 +162,7 @@ def _nuts_kernel(
         adapt_step_size=True,
         adapt_mass_matrix=True,
         full_mass=True,
-        target_accept_prob=TARGET_ACCEPT,
+        target_accept_prob=target_accept,
         max_tree_depth=MAX_TREE_DEPTH,
     )
     kernel.mass_matrix_adapter = LaplaceStartedMassMatrix()
@@ -245,6 +255,7 @@ def _run_chain(
     warmup: int,
     draws: int,
     seed: int,
+    target_accept: float,
     queue=None,
     chain: int = 0,
 ) -> ChainResult:
@@ -255,7 +266,7 @@ def _run_chain(
     start = time.perf_counter()
     init = torch.as_tensor(init)
     recorder = _ChainRecorder(posterior.potential, init, queue, chain)
-    kernel = _nuts_kernel(posterior, inverse_mass, recorder.potential)
+    kernel = _nuts_kernel(posterior, inverse_mass, recorder.potential, target_accept=target_accept)
     mcmc = MCMC(
         kernel,
         num_samples=draws,
@@ -393,7 +404,9 @@ def _field_constants(fields: ObservedFields) -> dict[str, np.ndarray]:
     return out
 
 
-def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, seed: int) -> dict[str, dict]:
+def file_attrs(
+    posterior: SkinPosterior, chains: int, warmup: int, draws: int, seed: int, target_accept: float
+) -> dict[str, dict]:
     """Attributes of ``posterior.nc``: the run's settings and versions (root) and each group's notes."""
     root = {
         "skinid_version": metadata.version("skinid"),
@@ -404,7 +417,7 @@ def file_attrs(posterior: SkinPosterior, chains: int, warmup: int, draws: int, s
         "warmup": warmup,
         "draws": draws,
         "max_tree_depth": MAX_TREE_DEPTH,
-        "target_accept_prob": TARGET_ACCEPT,
+        "target_accept_prob": target_accept,
         "noise": posterior.noise,
         "noise_scale": posterior.noise_scale,
         "gp_variance": posterior.gp_variance,
@@ -584,6 +597,8 @@ class PosteriorSamples:
     error_budget: ErrorBudget | None = None
     error_budget_at: np.ndarray | None = None  # (5,) the posterior medians it was evaluated at
     model_warnings: tuple[str, ...] = ()  # SkinPosterior.model_warnings
+    target_accept: float = TARGET_ACCEPT  # NUTS's target acceptance of these draws
+    divergences_before_resampling: int | None = None  # of the first run, when it was run again
 
     def posterior_dict(self) -> dict[str, np.ndarray]:
         """(chains, n_draws) draws per parameter name."""
@@ -655,6 +670,11 @@ class PosteriorSamples:
                 messages.append(f"{n}: R-hat {e.r_hat:.3f} > {RHAT_LIMIT} (chains disagree; sample longer)")
             if e.ess < ESS_LIMIT:
                 messages.append(f"{n}: ESS {e.ess:.0f} < {ESS_LIMIT}")
+        if self.divergences_before_resampling is not None:
+            messages.append(
+                f"{self.divergences_before_resampling} of {self.diverging.size} transitions diverged at target "
+                f"acceptance {TARGET_ACCEPT}: these draws are a rerun at {self.target_accept}"
+            )
         if self.diverging.any():
             messages.append(f"{int(self.diverging.sum())} divergent transitions")
         return messages
@@ -669,13 +689,14 @@ def _run_chains(
     seeds: list[int],
     n_jobs: int,
     bar,
+    target_accept: float,
 ) -> list[ChainResult]:
     """One chain per start in ``inits``, ``n_jobs`` at a time (spawned processes when > 1),
     advancing the progress ``bar`` (or None) as they go."""
     if n_jobs == 1:
         results = []
         for c in range(len(inits)):
-            results.append(_run_chain(posterior, inits[c], inverse_mass, warmup, draws, seeds[c]))
+            results.append(_run_chain(posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept))
             if bar is not None:
                 bar.update(warmup + draws)
         return results
@@ -683,7 +704,9 @@ def _run_chains(
     with ctx.Manager() as manager, ProcessPoolExecutor(n_jobs, mp_context=ctx) as pool:
         queue = manager.Queue()  # (chain, iterations) every 50 iterations of a chain
         futures = [
-            pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], queue, c)
+            pool.submit(
+                _run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept, queue, c
+            )
             for c in range(len(inits))
         ]
         pending = futures
@@ -714,7 +737,8 @@ def sample_posterior(
     n_jobs: int = 2,
     progress: bool = True,
 ) -> PosteriorSamples:
-    """Run ``chains`` NUTS chains (``n_jobs`` at a time) from around the posterior mode."""
+    """Run ``chains`` NUTS chains (``n_jobs`` at a time) from around the posterior mode; when more
+    than RESAMPLE_SHARE of their transitions diverge, run them again at RESAMPLE_ACCEPT."""
     start = time.perf_counter()
     mode = prepare(posterior, seed=seed)
     inverse_mass = laplace_inverse_mass(posterior, mode)
@@ -727,7 +751,14 @@ def sample_posterior(
         from tqdm import tqdm
 
         bar = tqdm(total=chains * (warmup + draws), desc="NUTS", unit="it", file=sys.stderr)
-    results = _run_chains(posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar)
+    target_accept, diverged_before = TARGET_ACCEPT, None
+    results = _run_chains(posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar, target_accept)
+    diverged = sum(int(r.diverging.sum()) for r in results)
+    if diverged > RESAMPLE_SHARE * chains * draws:
+        if bar is not None:
+            bar.total += chains * (warmup + draws)
+        target_accept, diverged_before = RESAMPLE_ACCEPT, diverged
+        results = _run_chains(posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar, target_accept)
     if bar is not None:
         bar.close()
     samples = PosteriorSamples(
@@ -743,7 +774,9 @@ def sample_posterior(
         log_likelihood=np.stack([r.log_likelihood for r in results]),
         prior=prior_draws(posterior, N_PRIOR_DRAWS, seed),
         data=data_groups(posterior),
-        attrs=file_attrs(posterior, chains, warmup, draws, seed),
+        attrs=file_attrs(posterior, chains, warmup, draws, seed, target_accept),
+        target_accept=target_accept,
+        divergences_before_resampling=diverged_before,
     )
     if posterior.gp_variance == "mode":
         samples.gp_variance_spread = posterior.gp_variance_spread(samples.draws[..., :5].reshape(-1, 5))

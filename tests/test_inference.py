@@ -258,6 +258,58 @@ def test_warm_up_keeps_the_laplace_metric_until_a_window_has_enough_draws():
     np.testing.assert_allclose(metrics[-1].numpy(), np.linalg.inv(precision), rtol=0.5, atol=0.1)
 
 
+class Funnel:
+    """Neal's funnel: v ~ N(0, 2^2), x | v ~ N(0, e^v) in 3 dimensions -- the geometry of unknown
+    noise (v = log sigma^2) over parameters whose width it sets."""
+
+    def log_density(self, u):
+        v, x = u[0], u[1:]
+        return -0.5 * (v / 2.0) ** 2 - 0.5 * torch.sum(x**2) * torch.exp(-v) - 0.5 * len(x) * v
+
+    def potential(self, sites):
+        return -self.log_density(sites["u"])
+
+
+def test_a_funnel_that_diverges_at_the_default_target_acceptance_does_not_at_the_resampling_one():
+    """The premise of sample_posterior's rerun: smaller steps (target acceptance RESAMPLE_ACCEPT)
+    take NUTS through a funnel where the default's diverge in more than RESAMPLE_SHARE of draws."""
+    from pyro.infer import MCMC
+
+    from inference.sampling import RESAMPLE_ACCEPT, RESAMPLE_SHARE, TARGET_ACCEPT
+
+    divergences = {}
+    for target in (TARGET_ACCEPT, RESAMPLE_ACCEPT):
+        torch.manual_seed(0)
+        kernel = _nuts_kernel(Funnel(), np.eye(4), Funnel().potential, target_accept=target)
+        mcmc = MCMC(
+            kernel,
+            num_samples=500,
+            warmup_steps=300,
+            initial_params={"u": torch.zeros(4, dtype=torch.float64)},
+            disable_progbar=True,
+        )
+        mcmc.run()
+        divergences[target] = len(mcmc.diagnostics()["divergences"]["chain 0"])
+    assert divergences[TARGET_ACCEPT] > RESAMPLE_SHARE * 500, divergences
+    assert divergences[RESAMPLE_ACCEPT] == 0, divergences
+
+
+def test_a_posterior_whose_chains_diverge_is_sampled_again_with_smaller_steps(emulator, data, monkeypatch):
+    """With the rerun forced (any run "diverges too often"), the draws, the file's attributes and
+    the warnings are those of the rerun at RESAMPLE_ACCEPT."""
+    import inference.sampling as sampling
+
+    monkeypatch.setattr(sampling, "RESAMPLE_SHARE", -1.0)
+    obs = from_dataset(data, int(np.flatnonzero(data.split)[0]), designs=[0], frames=[-1])
+    post = SkinPosterior(emulator, ObservedWeights.project(emulator, obs), gp_variance="mode")
+    samples = sample_posterior(post, chains=2, warmup=100, draws=100, seed=0, n_jobs=1, progress=False)
+    assert samples.target_accept == sampling.RESAMPLE_ACCEPT
+    assert samples.attrs["/"]["target_accept_prob"] == sampling.RESAMPLE_ACCEPT
+    assert samples.divergences_before_resampling is not None
+    message = f"{samples.divergences_before_resampling} of 200 transitions diverged at target acceptance 0.8"
+    assert any(w.startswith(message) for w in samples.summary().warnings)
+
+
 @dataclass(frozen=True)
 class HeldOutPosteriors:
     """Posterior summaries of one held-out material seen through each observable, and the
