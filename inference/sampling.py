@@ -704,9 +704,7 @@ def _run_chains(
     with ctx.Manager() as manager, ProcessPoolExecutor(n_jobs, mp_context=ctx) as pool:
         queue = manager.Queue()  # (chain, iterations) every 50 iterations of a chain
         futures = [
-            pool.submit(
-                _run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept, queue, c
-            )
+            pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept, queue, c)
             for c in range(len(inits))
         ]
         pending = futures
