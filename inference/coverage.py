@@ -65,6 +65,7 @@ class CaseResult:
     covered_95: tuple[bool, ...]
     interval_share_95: tuple[float, ...]  # 95 % interval width / prior range
     divergences: int
+    divergences_before_resampling: int | None = None  # of the first run, when it was run again
 
 
 def cases_of(
@@ -118,12 +119,17 @@ def run_case(
     case_settings = replace(settings, seed=settings.seed + case.seed, progress=False)
     samples = sample_of(emulator, observations, case_settings, noise="known" if noise_sd > 0 else "halfcauchy")
     draws = samples.draws[..., :5].reshape(-1, 5)
-    return case_result(draws, data.params[case.material], emulator.param_bounds, int(samples.diverging.sum()))
+    divergences = int(samples.diverging.sum())
+    truth = data.params[case.material]
+    return case_result(draws, truth, emulator.param_bounds, divergences, samples.divergences_before_resampling)
 
 
-def case_result(draws: np.ndarray, truth: np.ndarray, bounds: np.ndarray, divergences: int) -> CaseResult:
+def case_result(
+    draws: np.ndarray, truth: np.ndarray, bounds: np.ndarray, divergences: int, before_resampling: int | None = None
+) -> CaseResult:
     """Rank and interval coverage of the truth (5,) among posterior ``draws`` (n, 5) of the skin
-    parameters (theta in degrees), interval widths as shares of the prior ``bounds`` (5, 2)."""
+    parameters (theta in degrees), interval widths as shares of the prior ``bounds`` (5, 2);
+    ``before_resampling``: the divergences of a first run that was run again."""
     thinned = draws[np.linspace(0, len(draws) - 1, RANK_DRAWS).astype(int)]
     lo50, hi50, lo95, hi95 = np.percentile(draws, [25, 75, 2.5, 97.5], axis=0)
     return CaseResult(
@@ -132,6 +138,7 @@ def case_result(draws: np.ndarray, truth: np.ndarray, bounds: np.ndarray, diverg
         covered_95=tuple(bool(v) for v in (lo95 <= truth) & (truth <= hi95)),
         interval_share_95=tuple(float(v) for v in (hi95 - lo95) / np.ptp(bounds, axis=1)),
         divergences=divergences,
+        divergences_before_resampling=before_resampling,
     )
 
 
@@ -192,6 +199,8 @@ class CoverageSummary:
     divergences: int
     sampler: SamplerSettings
     parameters: dict[str, ParameterCoverage]
+    cases_resampled: int = 0  # posteriors run again with smaller steps (sampling.RESAMPLE_ACCEPT)
+    divergences_before_resampling: int = 0  # their first runs' divergences
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -230,7 +239,10 @@ def summarise(
             bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]),
         )
     divergences = int(sum(r.divergences for r in results))
-    return CoverageSummary(setup, n, noise_sd, n_cases, len(set(materials)), divergences, settings, parameters)
+    first = [r.divergences_before_resampling for r in results if r.divergences_before_resampling is not None]
+    return CoverageSummary(
+        setup, n, noise_sd, n_cases, len(set(materials)), divergences, settings, parameters, len(first), sum(first)
+    )
 
 
 def rank_histograms(ranks: np.ndarray, path: Path | str, title: str, bins: int = 10) -> Path:

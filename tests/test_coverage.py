@@ -2,6 +2,7 @@
 and a resumable run on the small emulator's held-out materials."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -66,6 +67,11 @@ def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
     again = summarise(results * 4, "single", 3, 0.0, SamplerSettings(), materials=list(range(50)) * 4)
     assert again.n_cases == 200 and again.n_materials == 50
     assert again.parameters["mu"].binomial_sd_50 == pytest.approx(mu.binomial_sd_50)
+    # posteriors run again with smaller steps are counted with their first runs' divergences
+    rerun = [replace(r, divergences=1, divergences_before_resampling=40) for r in results[:3]]
+    resampled = summarise(rerun + results[3:], "single", 3, 0.0, SamplerSettings(), materials=list(range(50)))
+    assert (resampled.cases_resampled, resampled.divergences_before_resampling, resampled.divergences) == (3, 120, 3)
+    assert (summary.cases_resampled, summary.divergences_before_resampling) == (0, 0)
 
 
 @pytest.mark.slow
