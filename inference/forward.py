@@ -107,6 +107,16 @@ class FailedRun:
     message: str
 
 
+@dataclass(frozen=True)
+class TransferredRun:
+    """One simulation started from another mesh's fields (:meth:`FEForward.continue_from`)."""
+
+    design: tuple[float, float]  # (alpha11, alpha22)
+    seconds: float
+    factorizations: int  # Newton–LU factorisations of the tangent, a ramp's included
+    continued: bool  # False: Newton did not converge and the load was ramped
+
+
 def _warn_of_ramp(design, homotopy_steps: list[tuple[float, bool, int]]) -> None:
     """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
     fine mesh), with the residual homotopy's steps: (s tried, converged, Newton iterations)."""
@@ -206,6 +216,7 @@ class FEForward(ForwardModel):
         self.continuation = Continuation() if continuation else None
         self.continued = 0  # simulations started from a nearby point's states instead of ramped
         self.transferred = False  # states come from another mesh (continue_from): solved by Newton–LU
+        self.transferred_runs: list[TransferredRun] = []  # this rank's, in the order run
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
 
@@ -248,10 +259,12 @@ class FEForward(ForwardModel):
             for i, d_frame in zip(indices, du):
                 states.sensitivities.setdefault(i, (None, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
 
+        seconds = time.perf_counter()
         start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
         continued = start is not None and model.solve_frames(
             params, design, start[1], start[0], measure, at_reference, *self._continuation_solver()
         )
+        factorizations = model.factorizations
         if not continued:
             if start is not None and self.transferred:  # the costly case: a full ramp on a fine mesh
                 _warn_of_ramp(design, model.homotopy_steps)
@@ -259,6 +272,10 @@ class FEForward(ForwardModel):
             states.frames.clear()
             states.sensitivities.clear()
             model.simulate(params, design, on_frame=measure, on_reference=at_reference)
+            factorizations += model.factorizations
+        if start is not None and self.transferred:
+            seconds = time.perf_counter() - seconds
+            self.transferred_runs.append(TransferredRun(self.designs[j], seconds, factorizations, continued))
         if self.continuation is not None:
             self.continuation.record(j, states)
         return out, continued

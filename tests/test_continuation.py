@@ -178,6 +178,9 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     assert fine.continued == 2
     np.testing.assert_allclose(f_continued, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
+    # each transferred run is recorded: both designs continued, by Newton–LU
+    assert [(r.design, r.continued) for r in fine.transferred_runs] == [(d, True) for d in fine.designs]
+    assert all(r.factorizations >= 1 and r.seconds > 0 for r in fine.transferred_runs)
 
 
 @pytest.mark.slow
@@ -227,6 +230,9 @@ def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, 
         "design (-0.05, 0.05): Newton from another mesh's fields did not converge (homotopy s = 1: 1 its" in caplog.text
     )
     assert "s = 0.0625: 1 its (failed)); ramping the load" in caplog.text  # four halvings, then the ramp
+    # the record counts the five failed homotopy steps' factorisations and the ramp's
+    assert [r.continued for r in fine.transferred_runs] == [False, False]
+    assert all(r.factorizations > 5 for r in fine.transferred_runs)
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     np.testing.assert_allclose(f_fine, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +117,7 @@ class CheckTimings:
     fe_runs_read_from_cache: int = 0
     fe_runs_continued: int = 0  # started from a nearby point's states instead of a load ramp
     refined_fe_runs_continued: int = 0  # started from the check mesh's interpolated fields
+    refined_runs: list[dict] = field(default_factory=list)  # forward.TransferredRun of every rank, as dicts
 
 
 @dataclass
@@ -372,6 +373,7 @@ def compare(
     disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
     timings.refined_fe_runs, timings.refined_s = fine.runs, disc.seconds
     timings.refined_fe_runs_continued = fine.continued
+    timings.refined_runs = [asdict(r) for part in fine.comm.allgather(fine.transferred_runs) for r in part]
     return model, data, baseline, disc
 
 
