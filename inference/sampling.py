@@ -32,6 +32,7 @@ import time
 import warnings
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, fields
+from functools import partial
 from importlib import metadata
 from pathlib import Path
 from typing import ClassVar
@@ -107,8 +108,8 @@ MAX_TREE_DEPTH, TARGET_ACCEPT = 8, 0.8
 # A run whose share of divergent transitions exceeds RESAMPLE_SHARE is run again at
 # RESAMPLE_ACCEPT (smaller leapfrog steps). Unknown noise (HalfCauchy) with a few weights per
 # sigma makes a funnel: where sigma is small the emulator's error floor alone sets the
-# parameters' widths (theta's 20x narrower than where sigma is large), and a step size adapted
-# to one end diverges at the other (docs/inference.md).
+# parameters' widths, where it is large they are free, and a step size adapted to one end
+# diverges at the other (benchmarks/divergences.py, docs/inference.md).
 RESAMPLE_SHARE, RESAMPLE_ACCEPT = 0.005, 0.95
 
 
@@ -599,6 +600,7 @@ class PosteriorSamples:
     model_warnings: tuple[str, ...] = ()  # SkinPosterior.model_warnings
     target_accept: float = TARGET_ACCEPT  # NUTS's target acceptance of these draws
     divergences_before_resampling: int | None = None  # of the first run, when it was run again
+    first_target_accept: float = TARGET_ACCEPT  # that first run's
 
     def posterior_dict(self) -> dict[str, np.ndarray]:
         """(chains, n_draws) draws per parameter name."""
@@ -673,7 +675,7 @@ class PosteriorSamples:
         if self.divergences_before_resampling is not None:
             messages.append(
                 f"{self.divergences_before_resampling} of {self.diverging.size} transitions diverged at target "
-                f"acceptance {TARGET_ACCEPT}: these draws are a rerun at {self.target_accept}"
+                f"acceptance {self.first_target_accept}: these draws are a rerun at {self.target_accept}"
             )
         if self.diverging.any():
             messages.append(f"{int(self.diverging.sum())} divergent transitions")
@@ -734,9 +736,12 @@ def sample_posterior(
     seed: int = 0,
     n_jobs: int = 2,
     progress: bool = True,
+    target_accept: float = TARGET_ACCEPT,
+    resample: bool = True,
 ) -> PosteriorSamples:
-    """Run ``chains`` NUTS chains (``n_jobs`` at a time) from around the posterior mode; when more
-    than RESAMPLE_SHARE of their transitions diverge, run them again at RESAMPLE_ACCEPT."""
+    """Run ``chains`` NUTS chains (``n_jobs`` at a time) from around the posterior mode at
+    ``target_accept``; when more than RESAMPLE_SHARE of their transitions diverge (and
+    ``resample``), run them again at RESAMPLE_ACCEPT."""
     start = time.perf_counter()
     mode = prepare(posterior, seed=seed)
     inverse_mass = laplace_inverse_mass(posterior, mode)
@@ -749,14 +754,15 @@ def sample_posterior(
         from tqdm import tqdm
 
         bar = tqdm(total=chains * (warmup + draws), desc="NUTS", unit="it", file=sys.stderr)
-    target_accept, diverged_before = TARGET_ACCEPT, None
-    results = _run_chains(posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar, target_accept)
+    run = partial(_run_chains, posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar)
+    first_target_accept, diverged_before = target_accept, None
+    results = run(target_accept)
     diverged = sum(int(r.diverging.sum()) for r in results)
-    if diverged > RESAMPLE_SHARE * chains * draws:
+    if resample and target_accept < RESAMPLE_ACCEPT and diverged > RESAMPLE_SHARE * chains * draws:
         if bar is not None:
             bar.total += chains * (warmup + draws)
         target_accept, diverged_before = RESAMPLE_ACCEPT, diverged
-        results = _run_chains(posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar, target_accept)
+        results = run(target_accept)
     if bar is not None:
         bar.close()
     samples = PosteriorSamples(
@@ -775,6 +781,7 @@ def sample_posterior(
         attrs=file_attrs(posterior, chains, warmup, draws, seed, target_accept),
         target_accept=target_accept,
         divergences_before_resampling=diverged_before,
+        first_target_accept=first_target_accept,
     )
     if posterior.gp_variance == "mode":
         samples.gp_variance_spread = posterior.gp_variance_spread(samples.draws[..., :5].reshape(-1, 5))
