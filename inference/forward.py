@@ -259,7 +259,7 @@ class FEForward(ForwardModel):
             for i, d_frame in zip(indices, du):
                 states.sensitivities.setdefault(i, (None, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
 
-        seconds = time.perf_counter()
+        started = time.perf_counter()
         start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
         continued = start is not None and model.solve_frames(
             params, design, start[1], start[0], measure, at_reference, *self._continuation_solver()
@@ -274,7 +274,7 @@ class FEForward(ForwardModel):
             model.simulate(params, design, on_frame=measure, on_reference=at_reference)
             factorizations += model.factorizations
         if start is not None and self.transferred:
-            seconds = time.perf_counter() - seconds
+            seconds = time.perf_counter() - started
             self.transferred_runs.append(TransferredRun(self.designs[j], seconds, factorizations, continued))
         if self.continuation is not None:
             self.continuation.record(j, states)

@@ -598,9 +598,13 @@ class PosteriorSamples:
     error_budget: ErrorBudget | None = None
     error_budget_at: np.ndarray | None = None  # (5,) the posterior medians it was evaluated at
     model_warnings: tuple[str, ...] = ()  # SkinPosterior.model_warnings
-    target_accept: float = TARGET_ACCEPT  # NUTS's target acceptance of these draws
     divergences_before_resampling: int | None = None  # of the first run, when it was run again
     first_target_accept: float = TARGET_ACCEPT  # that first run's
+
+    @property
+    def target_accept(self) -> float:
+        """NUTS's target acceptance of these draws (``posterior.nc``'s root attribute)."""
+        return self.attrs["/"]["target_accept_prob"]
 
     def posterior_dict(self) -> dict[str, np.ndarray]:
         """(chains, n_draws) draws per parameter name."""
@@ -779,7 +783,6 @@ def sample_posterior(
         prior=prior_draws(posterior, N_PRIOR_DRAWS, seed),
         data=data_groups(posterior),
         attrs=file_attrs(posterior, chains, warmup, draws, seed, target_accept),
-        target_accept=target_accept,
         divergences_before_resampling=diverged_before,
         first_target_accept=first_target_accept,
     )
