@@ -8,7 +8,8 @@ study's sampler) sampled at NUTS's default target acceptance without the rerun, 
 warm-up, and at the rerun's target acceptance (``inference.sampling.RESAMPLE_ACCEPT``). Per run
 and chain: divergences, step size, leapfrog steps per draw, the spread of the unconstrained
 draws (logit of the prior box for the skin parameters, log for the noise sigmas) and the median
-log sigma of all and of the divergent draws. Results: benchmarks/results/divergences.json.
+log sigma of all and of the divergent draws. Results: benchmarks/results/divergences.json,
+rewritten after each run.
 """
 
 from __future__ import annotations
@@ -67,7 +68,10 @@ def main() -> None:
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     material, design = args.case
+    if not (0 <= material < len(data.params) and 0 <= design < len(data.designs)):
+        parser.error(f"--case: material must be in [0, {len(data.params)}), design in [0, {len(data.designs)})")
     observations = from_dataset(data, material, [design], [-1])
+    record = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     runs = {}
     for name, target, warmup in [
         ("default", TARGET_ACCEPT, 300),
@@ -84,14 +88,13 @@ def main() -> None:
             "chains": [asdict(r) for r in chain_runs(posterior, samples)],
         }
         print(name, [r["divergences"] for r in runs[name]["chains"]], f"{samples.seconds:.0f} s", flush=True)
-    record = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
-    record[f"{args.data} material {material} design {design}"] = {
-        "emulator": str(args.emulator),
-        "names": list(posterior.names),
-        "truth": data.params[material].tolist(),
-        "runs": runs,
-    }
-    RESULTS.write_text(json.dumps(record, indent=2) + "\n")
+        record[f"{args.data} material {material} design {design}"] = {
+            "emulator": str(args.emulator),
+            "names": list(posterior.names),
+            "truth": data.params[material].tolist(),
+            "runs": runs,
+        }
+        RESULTS.write_text(json.dumps(record, indent=2) + "\n")  # each finished run is kept
 
 
 if __name__ == "__main__":

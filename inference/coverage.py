@@ -167,10 +167,11 @@ def coverage_study(
         write_text(path, json.dumps(asdict(results[-1])) + "\n")
     summary = summarise(results, setup, n, noise_sd, settings, [case.material for case in cases])
     write_text(out / "coverage.json", json.dumps(summary.to_json(), indent=2) + "\n")
+    observed = setup if setup == "single" else f"{setup} (n = {n})"
     rank_histograms(
         np.array([r.rank for r in results]),
         out / "ranks.png",
-        f"{setup} (n = {n}), noise sd {noise_sd:g}, emulator error {emulator_error_of(settings)}: {len(results)} cases",
+        f"{observed}, noise sd {noise_sd:g}, emulator error {emulator_error_of(settings)}: {len(results)} cases",
     )
     return summary
 
