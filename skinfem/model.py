@@ -579,11 +579,15 @@ class SkinModel:
         self._set_snes_option("snes_max_it", max_iterations)
         most = max(factorisation, Factorisation.FIRST_STEP)
 
-        def newton(policy: Factorisation) -> tuple[bool, float]:  # (converged, GMRES per Newton step)
-            if factorisation == Factorisation.EVERY_STEP:
+        def newton(policy: Factorisation, corrected: bool = False) -> tuple[bool, float]:  # (converged, GMRES/step)
+            if factorisation == Factorisation.EVERY_STEP and not corrected:
                 return self._residual_homotopy(), 1.0
+            start = self.u.x.array.copy()
             converged, _, krylov = self._newton_escalating(policy, most)
-            return converged, krylov
+            if converged or factorisation != Factorisation.EVERY_STEP:
+                return converged, krylov
+            self.u.x.array[:] = start
+            return self._residual_homotopy(), 1.0
 
         try:
             self.set_params(params)
@@ -591,15 +595,19 @@ class SkinModel:
             start = np.zeros_like(self.u.x.array) if reference_guess is None else reference_guess
             if not self._reference_equilibrium(design, start, lambda: newton(factorisation)[0], on_reference):
                 return False
-            policy = factorisation
+            # the previous frame's converged state less its guess: the guesses' shared error (e.g.
+            # another mesh's interpolation), carried to the next frame's guess
+            policy, correction = factorisation, None
             for t, guess in guesses:
-                self.u.x.array[:] = guess
+                self.u.x.array[:] = guess if correction is None else guess + correction
                 self._set_load(t, design)
-                converged, krylov = newton(policy)
+                converged, krylov = newton(policy, correction is not None)
                 if not converged:
                     return False
+                correction = self.u.x.array - guess
                 stale = krylov > self.config.solver.refactor_krylov
-                policy = max(factorisation, Factorisation.FIRST_STEP if stale else Factorisation.REUSE)
+                fresh = Factorisation.FIRST_STEP if stale else Factorisation.REUSE
+                policy = max(min(factorisation, Factorisation.FIRST_STEP), fresh)  # Newton–LU only at the first frame
                 if on_frame is not None:
                     on_frame(float(t))
             return True
