@@ -115,6 +115,9 @@ class TransferredRun:
     seconds: float
     factorizations: int  # Newton–LU factorisations of the tangent, a ramp's included
     continued: bool  # False: Newton did not converge and the load was ramped
+    homotopy_steps: list[
+        tuple[float, bool, int]
+    ]  # (s tried, converged, Newton–LU steps) of each residual homotopy step
 
 
 def _warn_of_ramp(design, homotopy_steps: list[tuple[float, bool, int]]) -> None:
@@ -275,7 +278,8 @@ class FEForward(ForwardModel):
             factorizations += model.factorizations
         if start is not None and self.transferred:
             seconds = time.perf_counter() - started
-            self.transferred_runs.append(TransferredRun(self.designs[j], seconds, factorizations, continued))
+            run = TransferredRun(self.designs[j], seconds, factorizations, continued, list(model.homotopy_steps))
+            self.transferred_runs.append(run)
         if self.continuation is not None:
             self.continuation.record(j, states)
         return out, continued

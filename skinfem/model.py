@@ -143,7 +143,8 @@ class SkinModel:
         self.problem = self._nonlinear_problem()
         self.factorizations = 0  # of the current simulation
         self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
-        self.homotopy_steps: list[tuple[float, bool, int]] = []  # (s tried, converged, Newton its) of the last homotopy
+        # (s tried, converged, Newton its) of every residual homotopy step of the last solve_frames
+        self.homotopy_steps: list[tuple[float, bool, int]] = []
         self.strain_sampler = self._observed_strain(terms)
         self.setup_seconds = time.perf_counter() - t0
 
@@ -412,7 +413,6 @@ class SkinModel:
         snes.computeFunction(self.problem.x, residual0)
         rhs = residual0.duplicate()
         s, step, cutbacks = 0.0, 1.0, 0
-        self.homotopy_steps = []
         self._set_snes_option("snes_linesearch_type", "bt")
         try:
             while s < 1.0:
@@ -591,7 +591,7 @@ class SkinModel:
 
         try:
             self.set_params(params)
-            self.factorizations = 0
+            self.factorizations, self.homotopy_steps = 0, []
             start = np.zeros_like(self.u.x.array) if reference_guess is None else reference_guess
             if not self._reference_equilibrium(design, start, lambda: newton(factorisation)[0], on_reference):
                 return False

@@ -181,6 +181,7 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
     # each transferred run is recorded: both designs continued, by Newton–LU
     assert [(r.design, r.continued) for r in fine.transferred_runs] == [(d, True) for d in fine.designs]
     assert all(r.factorizations >= 1 and r.seconds > 0 for r in fine.transferred_runs)
+    assert all(r.homotopy_steps[-1][:2] == (1.0, True) for r in fine.transferred_runs)
     # the first frame's correction of its interpolated guess is carried to the second frame's
     # guess: one factorisation there instead of a second homotopy (4; measured: 7 and 6 in all)
     one_frame, two_frames = sorted(fine.transferred_runs, key=lambda r: r.design[0])
@@ -232,12 +233,16 @@ def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, 
     f_fine = fine(x)
     assert fine.continued == 0
     assert (
-        "design (-0.05, 0.05): Newton from another mesh's fields did not converge (homotopy s = 1: 1 its" in caplog.text
+        "design (-0.05, 0.05): Newton from another mesh's fields did not converge (homotopy s = 1: 0 its, s = 1: 1 its"
+        in caplog.text
     )
     assert "s = 0.0625: 1 its (failed)); ramping the load" in caplog.text  # four halvings, then the ramp
     # the record counts the five failed homotopy steps' factorisations and the ramp's
     assert [r.continued for r in fine.transferred_runs] == [False, False]
     assert all(r.factorizations > 5 for r in fine.transferred_runs)
+    # the unloaded reference's homotopy (already at equilibrium), then the frame's five
+    assert [len(r.homotopy_steps) for r in fine.transferred_runs] == [6, 6]
+    assert all(r.homotopy_steps[-1] == (0.0625, False, 1) for r in fine.transferred_runs)
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     np.testing.assert_allclose(f_fine, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
 
