@@ -563,7 +563,11 @@ class SkinModel:
         once with a fresh factorisation, not escalated to Newton–LU (up to ``max_iterations``
         factorisations): that is left to the load ramp the caller falls back to. A failed
         ``EVERY_STEP`` attempt continues by a residual homotopy from the same guess
-        (:meth:`_residual_homotopy`), cheaper than a ramp on a fine mesh.
+        (:meth:`_residual_homotopy`), cheaper than a ramp on a fine mesh. The correction Newton
+        made to one frame's guess is added to the next frame's guess (the guesses share their
+        error, e.g. another mesh's interpolation), so with ``EVERY_STEP`` only the first frame
+        is solved by Newton–LU: later frames take GMRES on a fresh factorisation, escalated and
+        then the homotopy if that fails.
 
         Equilibrium does not depend on the load path, so where it is unique the states equal
         :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
@@ -595,9 +599,7 @@ class SkinModel:
             start = np.zeros_like(self.u.x.array) if reference_guess is None else reference_guess
             if not self._reference_equilibrium(design, start, lambda: newton(factorisation)[0], on_reference):
                 return False
-            # the previous frame's converged state less its guess: the guesses' shared error (e.g.
-            # another mesh's interpolation), carried to the next frame's guess
-            policy, correction = factorisation, None
+            policy, correction = factorisation, None  # correction: last converged frame less its guess
             for t, guess in guesses:
                 self.u.x.array[:] = guess if correction is None else guess + correction
                 self._set_load(t, design)
