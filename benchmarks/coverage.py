@@ -74,13 +74,20 @@ def material_scale(emulator) -> list[float] | None:
     return None if excess is None or excess.material_scale is None else list(excess.material_scale)
 
 
+def own_cases(cases: Path, materials: list[int] | None) -> int:
+    """Finished cases in ``cases`` of ``materials`` (None: all), not those of another process
+    sharing the store (case files are named m<material>_...)."""
+    names = [p.name for p in cases.glob("m*.json")]
+    return len(names) if materials is None else sum(int(n.split("_")[0][1:]) in materials for n in names)
+
+
 def run_study(args, emulator, data, setup: str, settings, sd: float, label: str):
     """One coverage study, written to ``<results>/<label>.json`` with the seconds per case of the
     cases this call ran (a pass that only summarises keeps the previous file's timing)."""
     from inference.coverage import coverage_study
 
     cases = args.store / label / "cases"
-    done_before = len(list(cases.glob("*.json"))) if cases.exists() else 0
+    done_before = own_cases(cases, args.materials)
     start = time.perf_counter()
     summary = coverage_study(
         emulator,
@@ -93,7 +100,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         materials=args.materials,
         starts=args.starts,
     )
-    run = len(list(cases.glob("*.json"))) - done_before
+    run = own_cases(cases, args.materials) - done_before
     timing = {"cases_run": run, "seconds_per_case": (time.perf_counter() - start) / run} if run else {}
     path = args.results / f"{label}.json"
     if not run and path.exists():
