@@ -115,9 +115,8 @@ class TransferredRun:
     seconds: float
     factorizations: int  # Newton–LU factorisations of the tangent, a ramp's included
     continued: bool  # False: Newton did not converge and the load was ramped
-    homotopy_steps: list[
-        tuple[float, bool, int]
-    ]  # (s tried, converged, Newton–LU steps) of each residual homotopy step
+    # (s tried, converged, Newton–LU steps) of each residual homotopy step
+    homotopy_steps: list[tuple[float, bool, int]]
 
 
 def _warn_of_ramp(design, homotopy_steps: list[tuple[float, bool, int]]) -> None:

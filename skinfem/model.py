@@ -584,13 +584,15 @@ class SkinModel:
         most = max(factorisation, Factorisation.FIRST_STEP)
 
         def newton(policy: Factorisation, corrected: bool = False) -> tuple[bool, float]:  # (converged, GMRES/step)
-            if factorisation == Factorisation.EVERY_STEP and not corrected:
-                return self._residual_homotopy(), 1.0
-            start = self.u.x.array.copy()
-            converged, _, krylov = self._newton_escalating(policy, most)
-            if converged or factorisation != Factorisation.EVERY_STEP:
+            if factorisation != Factorisation.EVERY_STEP:
+                converged, _, krylov = self._newton_escalating(policy, most)
                 return converged, krylov
-            self.u.x.array[:] = start
+            if corrected:  # near equilibrium: GMRES first, the homotopy only if that fails
+                start = self.u.x.array.copy()
+                converged, _, krylov = self._newton_escalating(policy, most)
+                if converged:
+                    return True, krylov
+                self.u.x.array[:] = start
             return self._residual_homotopy(), 1.0
 
         try:
