@@ -42,6 +42,14 @@ from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_
 from skinfem.params import Design, SkinParams
 from skinfem.strain import ObservedCells, SkinStrainSampler, SurfaceStrainSampler, top_skin_cells
 
+# A residual homotopy step's Newton–LU is judged every HOMOTOPY_STRETCH iterations and given up
+# when a stretch cut the residual by less than HOMOTOPY_CONTRACTION: damped (backtracked) steps
+# that barely reduce it rarely converge within the budget, and a halved homotopy step is cheaper
+# (benchmarks/homotopy.py).
+HOMOTOPY_STRETCH = 3
+HOMOTOPY_CONTRACTION = 0.1
+HOMOTOPY_MIN_STEP = 1 / 16  # the smallest homotopy step tried before giving up
+
 
 class Factorisation(IntEnum):
     """When a Newton solve factorises the tangent (its GMRES preconditioner)."""
@@ -212,7 +220,7 @@ class SkinModel:
         residual = ufl.derivative(self.energy, self.u, ufl.TestFunction(self.V))
         jacobian = ufl.derivative(residual, self.u, ufl.TrialFunction(self.V))
         self._prefix = f"skinid_{id(self)}_"
-        return dolfinx.fem.petsc.NonlinearProblem(
+        problem = dolfinx.fem.petsc.NonlinearProblem(
             residual,
             self.u,
             bcs=self.bcs,
@@ -231,6 +239,8 @@ class SkinModel:
                 **(self._krylov_options(solver) if solver.refactor_krylov else {"ksp_type": "preonly"}),
             },
         )
+        problem.solver.setConvergenceHistory(reset=True)  # each solve's residual norms
+        return problem
 
     def _model_terms(self, effects: Sequence[str | Effect]) -> ModelTerms:
         """Baseline energy terms, edited by each effect; effect parameters become Constants."""
@@ -397,11 +407,35 @@ class SkinModel:
             self.u.x.array[:] = start
             policy = Factorisation(policy + 1)
 
-    def _residual_homotopy(self, max_cutbacks: int = 4) -> bool:
+    def _contracting_newton(self, rhs: PETSc.Vec | None) -> tuple[bool, int]:
+        """Newton–LU towards R(u) = ``rhs`` (None: 0) within the SNES iteration budget, run in
+        stretches of ``HOMOTOPY_STRETCH`` iterations and ended after a stretch that cut the
+        residual norm by less than ``HOMOTOPY_CONTRACTION``. The relative tolerance stays
+        relative to the first stretch's starting residual. Returns (converged, iterations)."""
+        snes = self.problem.solver
+        rtol, _, _, budget = snes.getTolerances()
+        its, start = 0, None
+        try:
+            while True:
+                self._set_snes_option("snes_max_it", min(HOMOTOPY_STRETCH, budget - its))
+                converged, n, _ = self._newton(Factorisation.EVERY_STEP, rhs)
+                its += n
+                first, last = snes.getConvergenceHistory()[0][[0, -1]]  # residual norms of this stretch
+                start = first if start is None else start
+                if converged or its >= budget or not last < HOMOTOPY_CONTRACTION * first:
+                    return converged, its
+                self._set_snes_option("snes_rtol", rtol * start / last)
+        finally:
+            self._set_snes_option("snes_rtol", rtol)
+            self._set_snes_option("snes_max_it", budget)
+
+    def _residual_homotopy(self) -> bool:
         """Newton–LU from the current state ``u0`` when it is far from equilibrium (e.g. another
         mesh's fields): solve R(u) = (1 - s) R(u0) for s rising from 0 (where u0 solves it) to 1
-        (equilibrium), a full step first and halved steps after a failure, as the load ramp of
-        :meth:`simulate` does. From u0 = 0 this is the load ramp itself. Newton steps are
+        (equilibrium), a full step first, doubled after a success and halved after a failure
+        (down to ``HOMOTOPY_MIN_STEP``), as the load ramp of :meth:`simulate` does. Each step's
+        Newton is given up as soon as it stalls (:meth:`_contracting_newton`): a halved step is
+        cheaper than the rest of a stalled Newton's budget. Newton steps are
         backtracked here (PETSc's ``bt`` line search): from another mesh's fields a full step can
         invert cells (a NaN residual after two steps, quadratic check mesh onto its refinement
         with doubled muscle layers). Returns whether s = 1 was reached (the state is then the
@@ -412,7 +446,7 @@ class SkinModel:
         dolfinx.fem.petsc.assign(self.u, self.problem.x)
         snes.computeFunction(self.problem.x, residual0)
         rhs = residual0.duplicate()
-        s, step, cutbacks = 0.0, 1.0, 0
+        s, step = 0.0, 1.0
         self._set_snes_option("snes_linesearch_type", "bt")
         try:
             while s < 1.0:
@@ -420,15 +454,14 @@ class SkinModel:
                 saved = x.copy()
                 residual0.copy(rhs)
                 rhs.scale(1.0 - s_new)
-                converged, its, _ = self._newton(Factorisation.EVERY_STEP, None if s_new == 1.0 else rhs)
+                converged, its = self._contracting_newton(None if s_new == 1.0 else rhs)
                 self.homotopy_steps.append((s_new, converged, its))
                 if converged:
                     s, step = s_new, 2 * step
                     continue
                 x[:] = saved
-                cutbacks += 1
-                step /= 2
-                if cutbacks > max_cutbacks:
+                step = (s_new - s) / 2  # half the step that failed
+                if step < HOMOTOPY_MIN_STEP:
                     return False
             return True
         finally:
