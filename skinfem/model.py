@@ -411,8 +411,8 @@ class SkinModel:
 
     def _contracting_newton(self, rhs: PETSc.Vec | None) -> tuple[bool, int]:
         """Newton–LU towards R(u) = ``rhs`` (None: 0) within the SNES iteration budget, run in
-        stretches of ``HOMOTOPY_STRETCH`` iterations and ended after a stretch that cut the
-        residual norm by less than ``HOMOTOPY_CONTRACTION``. The relative tolerance stays
+        stretches of ``HOMOTOPY_STRETCH`` iterations and ended after a stretch whose last residual
+        norm is not below ``HOMOTOPY_CONTRACTION`` times its first. The relative tolerance stays
         relative to the first stretch's starting residual. Returns (converged, iterations)."""
         snes = self.problem.solver
         rtol, _, _, budget = snes.getTolerances()
