@@ -20,6 +20,7 @@ displacement (equilibrium does not depend on the path). Recorded, not asserted.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -62,7 +63,7 @@ def run_variant(model, stretch: int, loads, ramped: dict) -> dict:
                     "converged": converged,
                     "factorizations": model.factorizations,
                     "seconds": round(time.perf_counter() - start, 2),
-                    "homotopy_steps": model.homotopy_steps,
+                    "homotopy_steps": [dataclasses.asdict(h) for h in model.homotopy_steps],
                 }
                 if converged:
                     reference = ramped[material, a, design.alpha22]

@@ -36,7 +36,7 @@ from skinfem.config import PARAM_NAMES, Config
 from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
-from skinfem.model import Factorisation
+from skinfem.model import Factorisation, HomotopyStep
 from skinfem.parallel import collective
 from skinfem.sensitivity import DisplacementSensitivity
 
@@ -115,14 +115,13 @@ class TransferredRun:
     seconds: float
     factorizations: int  # Newton–LU factorisations of the tangent, a ramp's included
     continued: bool  # False: Newton did not converge and the load was ramped
-    # (s tried, converged, Newton–LU steps) of each residual homotopy step
-    homotopy_steps: list[tuple[float, bool, int]]
+    homotopy_steps: list[HomotopyStep]  # each residual homotopy step
 
 
-def _warn_of_ramp(design, homotopy_steps: list[tuple[float, bool, int]]) -> None:
+def _warn_of_ramp(design, homotopy_steps: list[HomotopyStep]) -> None:
     """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
-    fine mesh), with the residual homotopy's steps: (s tried, converged, Newton iterations)."""
-    steps = ", ".join(f"s = {s:g}: {its} its{'' if ok else ' (failed)'}" for s, ok, its in homotopy_steps)
+    fine mesh), with the residual homotopy's steps: s tried, Newton iterations, failed or not."""
+    steps = ", ".join(f"s = {h.s:g}: {h.iterations} its{'' if h.converged else ' (failed)'}" for h in homotopy_steps)
     log.warning(
         "design (%g, %g): Newton from another mesh's fields did not converge (homotopy %s); ramping the load",
         design.alpha11,

@@ -88,6 +88,18 @@ class StrainFrames:
     seconds: float = 0.0
 
 
+@dataclass(frozen=True)
+class HomotopyStep:
+    """One step of a residual homotopy (:meth:`SkinModel._residual_homotopy`): the s tried,
+    whether Newton–LU reached it, its iterations, and the residual norms [N] at the start and
+    at the end of each stretch of ``HOMOTOPY_STRETCH`` iterations."""
+
+    s: float
+    converged: bool
+    iterations: int
+    residuals: tuple[float, ...]
+
+
 @dataclass
 class _Ramp:
     """State of a load ramp (:meth:`SkinModel.simulate`): the load fraction reached, the next
@@ -153,8 +165,7 @@ class SkinModel:
         self.problem = self._nonlinear_problem()
         self.factorizations = 0  # of the current simulation
         self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
-        # (s tried, converged, Newton its) of every residual homotopy step of the last solve_frames
-        self.homotopy_steps: list[tuple[float, bool, int]] = []
+        self.homotopy_steps: list[HomotopyStep] = []  # of the last solve_frames
         self.strain_sampler = self._observed_strain(terms)
         self.setup_seconds = time.perf_counter() - t0
 
@@ -409,24 +420,25 @@ class SkinModel:
             self.u.x.array[:] = start
             policy = Factorisation(policy + 1)
 
-    def _contracting_newton(self, rhs: PETSc.Vec | None) -> tuple[bool, int]:
+    def _contracting_newton(self, rhs: PETSc.Vec | None) -> tuple[bool, int, tuple[float, ...]]:
         """Newton–LU towards R(u) = ``rhs`` (None: 0) within the SNES iteration budget, run in
         stretches of ``HOMOTOPY_STRETCH`` iterations and ended after a stretch whose last residual
         norm is not below ``HOMOTOPY_CONTRACTION`` times its first. The relative tolerance stays
-        relative to the first stretch's starting residual. Returns (converged, iterations)."""
+        relative to the first stretch's starting residual. Returns (converged, iterations, the
+        residual norms at the start and after each stretch)."""
         snes = self.problem.solver
         rtol, _, _, budget = snes.getTolerances()
-        its, start = 0, None
+        its, norms = 0, []
         try:
             while True:
                 self._set_snes_option("snes_max_it", min(HOMOTOPY_STRETCH, budget - its))
                 converged, n, _ = self._newton(Factorisation.EVERY_STEP, rhs)
                 its += n
-                first, last = snes.getConvergenceHistory()[0][[0, -1]]  # residual norms of this stretch
-                start = first if start is None else start
+                first, last = (float(v) for v in snes.getConvergenceHistory()[0][[0, -1]])  # of this stretch
+                norms += [first, last] if not norms else [last]
                 if converged or its >= budget or not last < HOMOTOPY_CONTRACTION * first:
-                    return converged, its
-                self._set_snes_option("snes_rtol", rtol * start / last)
+                    return converged, its, tuple(norms)
+                self._set_snes_option("snes_rtol", rtol * norms[0] / last)
         finally:
             self._set_snes_option("snes_rtol", rtol)
             self._set_snes_option("snes_max_it", budget)
@@ -456,8 +468,8 @@ class SkinModel:
                 saved = x.copy()
                 residual0.copy(rhs)
                 rhs.scale(1.0 - s_new)
-                converged, its = self._contracting_newton(None if s_new == 1.0 else rhs)
-                self.homotopy_steps.append((s_new, converged, its))
+                converged, its, norms = self._contracting_newton(None if s_new == 1.0 else rhs)
+                self.homotopy_steps.append(HomotopyStep(s_new, converged, its, norms))
                 if converged:
                     s, step = s_new, 2 * step
                     continue

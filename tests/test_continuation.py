@@ -181,7 +181,7 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
     # each transferred run is recorded: both designs continued, by Newton–LU
     assert [(r.design, r.continued) for r in fine.transferred_runs] == [(d, True) for d in fine.designs]
     assert all(r.factorizations >= 1 and r.seconds > 0 for r in fine.transferred_runs)
-    assert all(r.homotopy_steps[-1][:2] == (1.0, True) for r in fine.transferred_runs)
+    assert all((r.homotopy_steps[-1].s, r.homotopy_steps[-1].converged) == (1.0, True) for r in fine.transferred_runs)
     # the first frame's correction of its interpolated guess is carried to the second frame's
     # guess: one factorisation there instead of a second homotopy (4; measured: 7 and 6 in all)
     one_frame, two_frames = sorted(fine.transferred_runs, key=lambda r: r.design[0])
@@ -242,7 +242,8 @@ def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, 
     assert all(r.factorizations > 5 for r in fine.transferred_runs)
     # the unloaded reference's homotopy (already at equilibrium), then the frame's five
     assert [len(r.homotopy_steps) for r in fine.transferred_runs] == [6, 6]
-    assert all(r.homotopy_steps[-1] == (0.0625, False, 1) for r in fine.transferred_runs)
+    last_steps = [r.homotopy_steps[-1] for r in fine.transferred_runs]
+    assert all((h.s, h.converged, h.iterations, len(h.residuals)) == (0.0625, False, 1, 2) for h in last_steps)
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     np.testing.assert_allclose(f_fine, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
 
@@ -285,6 +286,9 @@ def test_a_stalled_homotopy_step_is_given_up_after_one_stretch(small_model, monk
         return small_model.factorizations, list(small_model.homotopy_steps)
 
     (with_stop, stopped), (without_stop, unstopped) = homotopy(3), homotopy(12)
-    assert stopped[0] == (1.0, False, 3) and unstopped[0] == (1.0, False, 12)
-    assert stopped[1:] == unstopped[1:] and len(stopped) > 1
+    first = stopped[0]
+    assert (first.s, first.converged, first.iterations) == (1.0, False, 3) and unstopped[0].iterations == 12
+    assert len(first.residuals) == 2 and first.residuals[1] > 0.5 * first.residuals[0]  # why it stopped
+    path = lambda steps: [(h.s, h.converged, h.iterations) for h in steps]  # noqa: E731
+    assert path(stopped[1:]) == path(unstopped[1:]) and len(stopped) > 1
     assert with_stop == without_stop - 9
