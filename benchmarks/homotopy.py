@@ -5,13 +5,14 @@
 
 A refined run of the discretisation estimate starts from another mesh's fields and, when
 Newton–LU from there fails, solves R(u) = (1 - s) R(u0) for s rising to 1
-(``SkinModel._residual_homotopy``). A homotopy step whose Newton stalls (damped steps that
-barely reduce the residual) used to run to the iteration cap (12) before the step was halved.
+(``SkinModel._residual_homotopy``). Without a stall stop, a homotopy step whose Newton stalls
+(damped steps that barely reduce the residual) runs to the iteration cap (12) before the step
+is halved.
 Here the same far start is made reproducible and cheap: zero displacement at the full load of
 each design (biaxial (a, a) and mixed (a, -a) for each load a), three materials of the box.
 Per variant (``stall stop``: Newton judged every ``HOMOTOPY_STRETCH`` iterations, given up
-after a stretch that cut the residual by less than ``HOMOTOPY_CONTRACTION``; ``no stall stop``:
-one stretch of the whole cap), the factorisations (one per Newton–LU step), the runs that gave
+after a stretch whose residual did not fall below ``HOMOTOPY_CONTRACTION`` times its start;
+``no stall stop``: one stretch of the whole cap), the factorisations (one per Newton–LU step), the runs that gave
 up (they fall back to a load ramp), and seconds; for runs that converged, the largest
 difference from the ramped equilibrium of :meth:`SkinModel.simulate` relative to its largest
 displacement (equilibrium does not depend on the path). Recorded, not asserted.
