@@ -481,9 +481,11 @@ def test_the_default_refinement_refines_only_the_edge_of_quadratic_or_edge_refin
 def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_an_effect(taylor_at_truth):
     """A check mesh whose error is 2.5 times its two-mesh shift (a refined mesh that is itself far
     from converged), with a shift that looks partly like a pre-stretch: corrected by the shift
-    alone (amplitude fixed at 1) the remaining 1.5 shifts are blamed on a pre-stretch; with the
-    amplitude calibrated (CorrectedForward) it is found (2.5 within 3 sd), the residual is noise
-    and no effect is named. Control: a real pre-stretch on top is still found."""
+    alone (amplitude fixed at 1) the remaining 1.5 shifts raise a false alarm (a structured
+    residual, blamed on an effect or on something outside the registry, depending on the
+    installed numerical libraries); with the amplitude calibrated (CorrectedForward) it is found
+    (2.5 within 3 sd), the residual is noise and no effect is named. Control: a real pre-stretch
+    on top is still found."""
     from inference.criticism.discretisation import AMPLITUDE, CorrectedForward
 
     forward, xy = taylor_at_truth
@@ -498,7 +500,7 @@ def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_a
 
     fixed = calibrate(corrected, data, x0, list(range(5)), max_iterations=30)
     blamed = diagnose(corrected, fixed, data, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
-    assert blamed.best is not None and blamed.best.effect == "pre_stretch"
+    assert blamed.metrics.structured
 
     fitted = calibrate(corrected, data, x0, free, max_iterations=30)
     assert abs(fitted.x[-1] - 2.5) < 3 * fitted.sd[-1]
