@@ -25,8 +25,12 @@ import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from skinfem.params import Design, SkinParams
 
 HERE = Path(__file__).resolve().parent
 MATERIALS = {  # mu [MPa], k1 [MPa], k2, kappa, theta [deg]
@@ -37,40 +41,43 @@ MATERIALS = {  # mu [MPa], k1 [MPa], k2, kappa, theta [deg]
 CAP = 12  # Newton–LU steps per homotopy step, as for a transferred run (inference.forward)
 
 
-def run_variant(model, stretch: int, loads, ramped: dict) -> dict:
-    """Every (material, design) from zero at the full load with Newton judged every ``stretch``
-    iterations; per run: factorisations, converged, seconds, homotopy steps."""
+def cases(loads) -> list[tuple[str, SkinParams, Design]]:
+    """Every (material, parameters, design): the biaxial (a, a) and mixed (a, -a) designs at each load a."""
+    from skinfem.params import Design, SkinParams
+
+    return [
+        (material, SkinParams.from_array(np.array(values)), Design(a, a22))
+        for material, values in MATERIALS.items()
+        for a in loads
+        for a22 in (a, -a)
+    ]
+
+
+def run_variant(model, stretch: int, runs_of: list, ramped: list[np.ndarray]) -> dict:
+    """Every case of ``runs_of`` (:func:`cases`) from zero at the full load with Newton judged
+    every ``stretch`` iterations; per run: factorisations, converged, seconds, homotopy steps,
+    and the difference from the case's ramped equilibrium (``ramped``, same order)."""
     import skinfem.model
     from skinfem.model import Factorisation
-    from skinfem.params import Design, SkinParams
 
     skinfem.model.HOMOTOPY_STRETCH = stretch
     runs = []
-    for material, values in MATERIALS.items():
-        for a in loads:
-            for design in (Design(a, a), Design(a, -a)):
-                zero = [(1.0, np.zeros_like(model.u.x.array))]
-                start = time.perf_counter()
-                converged = model.solve_frames(
-                    SkinParams.from_array(np.array(values)),
-                    design,
-                    zero,
-                    max_iterations=CAP,
-                    factorisation=Factorisation.EVERY_STEP,
-                )
-                row = {
-                    "material": material,
-                    "design": [design.alpha11, design.alpha22],
-                    "converged": converged,
-                    "factorizations": model.factorizations,
-                    "seconds": round(time.perf_counter() - start, 2),
-                    "homotopy_steps": [dataclasses.asdict(h) for h in model.homotopy_steps],
-                }
-                if converged:
-                    reference = ramped[material, a, design.alpha22]
-                    error = np.abs(model.u.x.array - reference).max() / np.abs(reference).max()
-                    row["difference_from_ramp"] = float(error)
-                runs.append(row)
+    for (material, params, design), reference in zip(runs_of, ramped):
+        zero = [(1.0, np.zeros_like(model.u.x.array))]
+        start = time.perf_counter()
+        converged = model.solve_frames(params, design, zero, max_iterations=CAP, factorisation=Factorisation.EVERY_STEP)
+        row = {
+            "material": material,
+            "design": [design.alpha11, design.alpha22],
+            "converged": converged,
+            "factorizations": model.factorizations,
+            "seconds": round(time.perf_counter() - start, 2),
+            "homotopy_steps": [dataclasses.asdict(h) for h in model.homotopy_steps],
+        }
+        if converged:
+            error = np.abs(model.u.x.array - reference).max() / np.abs(reference).max()
+            row["difference_from_ramp"] = float(error)
+        runs.append(row)
     return {
         "factorizations": sum(r["factorizations"] for r in runs),
         "gave_up": sum(not r["converged"] for r in runs),
@@ -84,7 +91,6 @@ def main() -> None:
     import skinfem.model
     from skinfem.config import load_config
     from skinfem.model import SkinModel
-    from skinfem.params import Design, SkinParams
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="small")
@@ -93,18 +99,17 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "results" / "homotopy.json")
     args = parser.parse_args()
     model = SkinModel(load_config(args.config), mesh_dir=args.mesh_dir)
-    ramped = {}
-    for material, values in MATERIALS.items():
-        for a in args.loads:
-            for a22 in (a, -a):
-                model.simulate(SkinParams.from_array(np.array(values)), Design(a, a22))
-                ramped[material, a, a22] = model.u.x.array.copy()
+    runs_of = cases(args.loads)
+    ramped = []
+    for _, params, design in runs_of:
+        model.simulate(params, design)
+        ramped.append(model.u.x.array.copy())
     stall_stop = skinfem.model.HOMOTOPY_STRETCH
     variants = {
         f"stall stop ({stall_stop} iterations, contraction {skinfem.model.HOMOTOPY_CONTRACTION})": stall_stop,
         "no stall stop": CAP,
     }
-    results = {name: run_variant(model, stretch, args.loads, ramped) for name, stretch in variants.items()}
+    results = {name: run_variant(model, stretch, runs_of, ramped) for name, stretch in variants.items()}
     for name, result in results.items():
         print(name, {k: v for k, v in result.items() if k != "runs"}, flush=True)
     command = f"python benchmarks/homotopy.py --config {args.config} --loads {' '.join(map(str, args.loads))}"
