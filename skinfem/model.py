@@ -51,6 +51,7 @@ from skinfem.strain import ObservedCells, SkinStrainSampler, SurfaceStrainSample
 HOMOTOPY_STRETCH = 3
 HOMOTOPY_CONTRACTION = 0.5
 HOMOTOPY_MIN_STEP = 1 / 16  # the smallest homotopy step tried before giving up
+HOMOTOPY_LINESEARCH = "bt"  # PETSc line search of a homotopy step's Newton (benchmarks/homotopy.py)
 
 
 class Factorisation(IntEnum):
@@ -434,7 +435,10 @@ class SkinModel:
                 self._set_snes_option("snes_max_it", min(HOMOTOPY_STRETCH, budget - its))
                 converged, n, _ = self._newton(Factorisation.EVERY_STEP, rhs)
                 its += n
-                first, last = (float(v) for v in snes.getConvergenceHistory()[0][[0, -1]])  # of this stretch
+                history = snes.getConvergenceHistory()[0]  # of this stretch
+                if len(history) == 0:  # stopped before any residual norm, e.g. a non-finite start
+                    return False, its, tuple(norms)
+                first, last = float(history[0]), float(history[-1])
                 norms += [first, last] if not norms else [last]
                 if converged or its >= budget or not last < HOMOTOPY_CONTRACTION * first:
                     return converged, its, tuple(norms)
@@ -461,7 +465,7 @@ class SkinModel:
         snes.computeFunction(self.problem.x, residual0)
         rhs = residual0.duplicate()
         s, step = 0.0, 1.0
-        self._set_snes_option("snes_linesearch_type", "bt")
+        self._set_snes_option("snes_linesearch_type", HOMOTOPY_LINESEARCH)
         try:
             while s < 1.0:
                 s_new = min(1.0, s + step)

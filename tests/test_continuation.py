@@ -292,3 +292,20 @@ def test_a_stalled_homotopy_step_is_given_up_after_one_stretch(small_model, monk
     path = lambda steps: [(h.s, h.converged, h.iterations) for h in steps]  # noqa: E731
     assert path(stopped[1:]) == path(unstopped[1:]) and len(stopped) > 1
     assert with_stop == without_stop - 9
+
+
+def test_a_non_finite_start_is_a_failed_homotopy_not_an_exception(small_model):
+    """A starting field with a NaN (e.g. a transfer gone wrong) has no finite residual: every
+    homotopy step stops before its first Newton step and the solve reports failure (the caller
+    then ramps the load) instead of raising."""
+    from skinfem.model import HOMOTOPY_MIN_STEP, Factorisation
+    from skinfem.params import Design, SkinParams
+
+    start = np.zeros_like(small_model.u.x.array)
+    start[5] = np.nan
+    frames = [(1.0, start)]
+    params, design = SkinParams.from_array(TRUTH), Design(0.05, -0.05)
+    assert not small_model.solve_frames(params, design, frames, max_iterations=4, factorisation=Factorisation.EVERY_STEP)
+    steps = small_model.homotopy_steps
+    assert [h.s for h in steps] == [1.0 / 2**k for k in range(len(steps))] and steps[-1].s == HOMOTOPY_MIN_STEP
+    assert all(not h.converged and h.iterations == 0 and h.residuals == () for h in steps)
