@@ -51,6 +51,8 @@ from skinfem.strain import ObservedCells, SkinStrainSampler, SurfaceStrainSample
 HOMOTOPY_STRETCH = 3
 HOMOTOPY_CONTRACTION = 0.5
 HOMOTOPY_MIN_STEP = 1 / 16  # the smallest homotopy step tried before giving up
+DIVERGED_LINE_SEARCH = PETSc.SNES.ConvergedReason.DIVERGED_LINE_SEARCH
+DIVERGED_LINEAR_SOLVE = PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
 HOMOTOPY_LINESEARCH = "bt"  # PETSc line search of a homotopy step's Newton (benchmarks/homotopy.py)
 
 
@@ -398,9 +400,11 @@ class SkinModel:
         self._rebuild_pending = reuse and (
             policy == Factorisation.EVERY_STEP or (policy != Factorisation.REUSE and its == 0)
         )
+        # a step whose linear solve or line search failed had its tangent factorised but is not counted by SNES
+        failed_step = reason in (DIVERGED_LINE_SEARCH, DIVERGED_LINEAR_SOLVE)
         if not reuse or policy == Factorisation.EVERY_STEP:
-            self.factorizations += its
-        elif policy == Factorisation.FIRST_STEP and its > 0:
+            self.factorizations += its + failed_step
+        elif policy == Factorisation.FIRST_STEP and its + failed_step > 0:
             self.factorizations += 1
         ok = reason > 0 and np.all(np.isfinite(self.u.x.array))
         ok = bool(self.comm.allreduce(ok, op=MPI.LAND))
