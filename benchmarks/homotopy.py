@@ -1,7 +1,7 @@
 """Cost of the residual homotopy's Newton, with and without its stall stop.
 
     python benchmarks/homotopy.py [--config small] [--loads 0.1 0.125 0.15 0.175 0.2]
-                                  [--out benchmarks/results/homotopy.json]
+                                  [--linesearches bt cp l2] [--out benchmarks/results/homotopy.json]
 
 A refined run of the discretisation estimate starts from another mesh's fields and, when
 Newton–LU from there fails, solves R(u) = (1 - s) R(u0) for s rising to 1
@@ -12,10 +12,14 @@ Here the same far start is made reproducible and cheap: zero displacement at the
 each design (biaxial (a, a) and mixed (a, -a) for each load a), three materials of the box.
 Per variant (``stall stop``: Newton judged every ``HOMOTOPY_STRETCH`` iterations, given up
 after a stretch whose residual did not fall below ``HOMOTOPY_CONTRACTION`` times its start;
-``no stall stop``: one stretch of the whole cap), the factorisations (one per Newton–LU step), the runs that gave
-up (they fall back to a load ramp), and seconds; for runs that converged, the largest
-difference from the ramped equilibrium of :meth:`SkinModel.simulate` relative to its largest
-displacement (equilibrium does not depend on the path). Recorded, not asserted.
+``no stall stop``: one stretch of the whole cap; each with one of PETSc's line searches,
+``--linesearches``: ``bt``, backtracking on |R|², the default; ``cp``, the critical point of the
+energy along the Newton direction — the residual is the gradient of the total energy less the
+homotopy's constant load, so that energy is a merit function; ``l2``, a secant on |R|²): the
+factorisations (one per Newton–LU step), the runs that gave up (they fall back to a load ramp),
+and seconds; for runs that converged, the largest difference from the ramped equilibrium of
+:meth:`SkinModel.simulate` relative to its largest displacement (equilibrium does not depend on
+the path). Recorded, not asserted.
 """
 
 from __future__ import annotations
@@ -53,14 +57,16 @@ def cases(loads) -> list[tuple[str, SkinParams, Design]]:
     ]
 
 
-def run_variant(model, stretch: int, runs_of: list, ramped: list[np.ndarray]) -> dict:
+def run_variant(model, stretch: int, linesearch: str, runs_of: list, ramped: list[np.ndarray]) -> dict:
     """Every case of ``runs_of`` (:func:`cases`) from zero at the full load with Newton judged
-    every ``stretch`` iterations; per run: factorisations, converged, seconds, homotopy steps,
-    and the difference from the case's ramped equilibrium (``ramped``, same order)."""
+    every ``stretch`` iterations and damped by PETSc's ``linesearch``; per run: factorisations,
+    converged, seconds, homotopy steps, and the difference from the case's ramped equilibrium
+    (``ramped``, same order)."""
     import skinfem.model
     from skinfem.model import Factorisation
 
     skinfem.model.HOMOTOPY_STRETCH = stretch
+    skinfem.model.HOMOTOPY_LINESEARCH = linesearch
     runs = []
     for (material, params, design), reference in zip(runs_of, ramped):
         zero = [(1.0, np.zeros_like(model.u.x.array))]
@@ -95,6 +101,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="small")
     parser.add_argument("--loads", nargs="+", type=float, default=[0.1, 0.125, 0.15, 0.175, 0.2])
+    parser.add_argument(
+        "--linesearches", nargs="+", default=["bt", "cp", "l2"], help="PETSc line searches tried with the stall stop"
+    )
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument("--out", type=Path, default=HERE / "results" / "homotopy.json")
     args = parser.parse_args()
@@ -105,14 +114,17 @@ def main() -> None:
         model.simulate(params, design)
         ramped.append(model.u.x.array.copy())
     stall_stop = skinfem.model.HOMOTOPY_STRETCH
-    variants = {
-        f"stall stop ({stall_stop} iterations, contraction {skinfem.model.HOMOTOPY_CONTRACTION})": stall_stop,
-        "no stall stop": CAP,
-    }
-    results = {name: run_variant(model, stretch, runs_of, ramped) for name, stretch in variants.items()}
+    stop = f"stall stop ({stall_stop} iterations, contraction {skinfem.model.HOMOTOPY_CONTRACTION})"
+    variants = {f"{stop}, {search} line search": (stall_stop, search) for search in args.linesearches}
+    default = skinfem.model.HOMOTOPY_LINESEARCH
+    variants[f"no stall stop, {default} line search"] = (CAP, default)
+    results = {name: run_variant(model, *variant, runs_of, ramped) for name, variant in variants.items()}
     for name, result in results.items():
         print(name, {k: v for k, v in result.items() if k != "runs"}, flush=True)
-    command = f"python benchmarks/homotopy.py --config {args.config} --loads {' '.join(map(str, args.loads))}"
+    command = (
+        f"python benchmarks/homotopy.py --config {args.config} --loads {' '.join(map(str, args.loads))}"
+        f" --linesearches {' '.join(args.linesearches)}"
+    )
     summary = {"command": command, "config": args.config, "dofs": model.n_dofs, "cap": CAP, "variants": results}
     args.out.write_text(json.dumps(summary, indent=1) + "\n")
 
