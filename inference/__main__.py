@@ -30,11 +30,12 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--emulator-error",
-        choices=["on", "scaled", "shift", "off"],  # inference.studies.EMULATOR_ERRORS (imported lazily)
-        default="on",
+        choices=["auto", "on", "scaled", "shift", "off"],  # "auto" + inference.studies.EMULATOR_ERRORS
+        default="auto",
         help="carry the emulator's held-out error and PCA truncation in the likelihood (on), that "
         "error times a sampled material scale (scaled), the error as a shift of the parameters "
-        "shared by every observation (shift), or the GP variance only (off)",
+        "shared by every observation (shift), or the GP variance only (off); auto (default): shift "
+        "when the emulator fitted it (refit older emulators), else on",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -423,9 +424,12 @@ def _add_dic_import(p: argparse.ArgumentParser) -> None:
     table.add_argument("--skip", type=int, default=0, help="lines before the header to skip")
 
 
-def settings_of(args):
-    from inference.studies import SamplerSettings, emulator_error_flags
+def settings_of(args, emulator=None):
+    """The sampler settings of the command line; ``--emulator-error auto`` resolved for
+    ``emulator`` (None: emulators the command fits itself)."""
+    from inference.studies import SamplerSettings, default_emulator_error, emulator_error_flags
 
+    error = default_emulator_error(emulator) if args.emulator_error == "auto" else args.emulator_error
     return SamplerSettings(
         chains=args.chains,
         warmup=args.warmup,
@@ -434,7 +438,7 @@ def settings_of(args):
         n_jobs=args.jobs,
         gp_variance=args.gp_variance,
         progress=not args.quiet,
-        **emulator_error_flags(args.emulator_error),
+        **emulator_error_flags(error),
     )
 
 
@@ -478,7 +482,7 @@ def cmd_infer(args) -> None:
         for m in measurements:
             check_strain_scale(m, membrane_half)
         obs = [map_to_cells(m, emulator.xy) for m in measurements]
-    summary = posterior_of(emulator, obs, settings_of(args), args.out, noise=args.noise)
+    summary = posterior_of(emulator, obs, settings_of(args, emulator), args.out, noise=args.noise)
     print_summary(summary, args.out)
 
 
@@ -552,7 +556,7 @@ def _coverage(args, emulator, data) -> None:
         emulator,
         data,
         args.setup,
-        settings_of(args),
+        settings_of(args, emulator),
         args.out,
         args.n,
         args.noise_sd,
@@ -592,7 +596,7 @@ def _test_set(args, emulator, data) -> None:
         data,
         args.designs,
         _ints(args.frames, "--frames"),
-        settings_of(args),
+        settings_of(args, emulator),
         args.out,
         _ints(args.materials, "--materials"),
     )
@@ -630,7 +634,7 @@ def _setups(args, emulator, data, designs: list[int]) -> None:
             data,
             d,
             f,
-            settings_of(args),
+            settings_of(args, emulator),
             args.out / label.replace(" ", "_"),
             _ints(args.materials, "--materials"),
             label,

@@ -9,7 +9,14 @@ import pytest
 
 from inference import coverage
 from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study, summarise
-from inference.studies import EMULATOR_ERRORS, SamplerSettings, emulator_error_flags, emulator_error_of, spread_designs
+from inference.studies import (
+    EMULATOR_ERRORS,
+    SamplerSettings,
+    default_emulator_error,
+    emulator_error_flags,
+    emulator_error_of,
+    spread_designs,
+)
 from skinfem.io import StrainDataset
 from surrogate.emulator import Emulator
 
@@ -48,6 +55,22 @@ def test_one_start_per_material_gives_independent_cases_over_every_design(data):
 @pytest.mark.parametrize("choice", EMULATOR_ERRORS)
 def test_the_error_model_named_on_a_study_is_the_one_its_settings_hold(choice):
     assert emulator_error_of(SamplerSettings(**emulator_error_flags(choice))) == choice
+
+
+def test_the_default_error_model_is_the_parameter_shift_where_the_emulator_fitted_one(small_emulator, tmp_path):
+    """The command line's '--emulator-error auto': the shift for an emulator that fitted it (and
+    for the emulators a study fits itself), the per-weight error for one fitted before it."""
+    import shutil
+
+    assert default_emulator_error(Emulator.load(small_emulator)) == "shift"
+    assert default_emulator_error(None) == "shift"
+    older = tmp_path / "emu"
+    shutil.copytree(small_emulator, older)
+    meta = json.loads((older / "meta.json").read_text())
+    meta["held_out_excess"].pop("parameter_shift")
+    (older / "meta.json").write_text(json.dumps(meta))
+    assert Emulator.load(older).held_out_excess is not None
+    assert default_emulator_error(Emulator.load(older)) == "on"
 
 
 def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
