@@ -52,6 +52,7 @@ def main() -> None:
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
     from inference.sampling import sample_posterior
+    from inference.studies import EMULATOR_ERRORS, default_emulator_error, emulator_error_flags
     from skinfem.io import StrainDataset, design_index
     from surrogate.emulator import Emulator
 
@@ -67,6 +68,12 @@ def main() -> None:
         choices=["exact", "mode"],
         help="GP-variance treatments to time",
     )
+    parser.add_argument(
+        "--emulator-error",
+        default="auto",
+        choices=["auto", *EMULATOR_ERRORS],
+        help="the emulator error model (auto: skinid infer's default for this emulator)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
@@ -79,11 +86,15 @@ def main() -> None:
         "n_gps": int(sum(emulator.n_weights.values())),
         "material": material,
     }
+    error = default_emulator_error(emulator) if args.emulator_error == "auto" else args.emulator_error
+    suffix = "" if error == "on" else f"_error_{error}"
     for gp_variance in args.variants:
-        post = SkinPosterior(emulator, observed, gp_variance=gp_variance)
+        post = SkinPosterior(emulator, observed, gp_variance=gp_variance, **emulator_error_flags(error))
         s = sample_posterior(post, chains=4, warmup=500, draws=1000, seed=0, n_jobs=2, progress=False)
         summary = s.summary()
-        results[f"skinid_gp_variance_{gp_variance}"] = {
+        results[f"skinid_gp_variance_{gp_variance}{suffix}"] = {
+            "emulator": str(args.emulator),
+            "emulator_error": error,
             "chains": 4,
             "warmup": 500,
             "draws": 1000,
@@ -95,7 +106,7 @@ def main() -> None:
             "gp_variance_over_posterior": s.gp_variance_spread,
             "medians": {n: e.median for n, e in summary.parameters.items()},
         }
-        print(gp_variance, json.dumps(results[f"skinid_gp_variance_{gp_variance}"]), flush=True)
+        print(gp_variance, json.dumps(results[f"skinid_gp_variance_{gp_variance}{suffix}"]), flush=True)
     if not args.skip_paper:
         n = args.paper_iterations
         post = make_paper_posterior(emulator, observed)
@@ -120,8 +131,8 @@ def main() -> None:
     if "paper_configuration" in results:
         paper_rate = results["paper_configuration"]["ess_per_second"]
         for v in args.variants:
-            rate = results[f"skinid_gp_variance_{v}"]["ess_per_second"]
-            results[f"ess_per_second_ratio_{v}_over_paper"] = rate / paper_rate
+            rate = results[f"skinid_gp_variance_{v}{suffix}"]["ess_per_second"]
+            results[f"ess_per_second_ratio_{v}{suffix}_over_paper"] = rate / paper_rate
     all_results[name] = results
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(all_results, indent=2) + "\n")
