@@ -120,8 +120,11 @@ class TransferredRun:
 
 def _warn_of_ramp(design, homotopy_steps: list[HomotopyStep]) -> None:
     """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
-    fine mesh), with the residual homotopy's steps: s tried, Newton iterations, failed or not."""
-    steps = ", ".join(f"s = {h.s:g}: {h.iterations} its{'' if h.converged else ' (failed)'}" for h in homotopy_steps)
+    fine mesh), with the steps of the residual homotopy that failed (those after the last one
+    that reached s = 1, e.g. the unloaded reference's): s tried, Newton iterations, failed or not."""
+    reached = [i for i, h in enumerate(homotopy_steps) if h.s == 1.0 and h.converged]
+    failed = homotopy_steps[reached[-1] + 1 :] if reached else homotopy_steps
+    steps = ", ".join(f"s = {h.s:g}: {h.iterations} its{'' if h.converged else ' (failed)'}" for h in failed)
     log.warning(
         "design (%g, %g): Newton from another mesh's fields did not converge (homotopy %s); ramping the load",
         design.alpha11,
