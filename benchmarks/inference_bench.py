@@ -52,7 +52,7 @@ def main() -> None:
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
     from inference.sampling import sample_posterior
-    from inference.studies import EMULATOR_ERRORS, default_emulator_error, emulator_error_flags
+    from inference.studies import EMULATOR_ERRORS, emulator_error_flags, resolve_emulator_error
     from skinfem.io import StrainDataset, design_index
     from surrogate.emulator import Emulator
 
@@ -86,7 +86,7 @@ def main() -> None:
         "n_gps": int(sum(emulator.n_weights.values())),
         "material": material,
     }
-    error = default_emulator_error(emulator) if args.emulator_error == "auto" else args.emulator_error
+    error = resolve_emulator_error(args.emulator_error, emulator)
     suffix = "" if error == "on" else f"_error_{error}"
     for gp_variance in args.variants:
         post = SkinPosterior(emulator, observed, gp_variance=gp_variance, **emulator_error_flags(error))

@@ -427,9 +427,8 @@ def _add_dic_import(p: argparse.ArgumentParser) -> None:
 def settings_of(args, emulator=None):
     """The sampler settings of the command line; ``--emulator-error auto`` resolved for
     ``emulator`` (None: emulators the command fits itself)."""
-    from inference.studies import SamplerSettings, default_emulator_error, emulator_error_flags
+    from inference.studies import SamplerSettings, emulator_error_flags, resolve_emulator_error
 
-    error = default_emulator_error(emulator) if args.emulator_error == "auto" else args.emulator_error
     return SamplerSettings(
         chains=args.chains,
         warmup=args.warmup,
@@ -438,7 +437,7 @@ def settings_of(args, emulator=None):
         n_jobs=args.jobs,
         gp_variance=args.gp_variance,
         progress=not args.quiet,
-        **emulator_error_flags(error),
+        **emulator_error_flags(resolve_emulator_error(args.emulator_error, emulator)),
     )
 
 

@@ -38,11 +38,13 @@ class SamplerSettings:
 EMULATOR_ERRORS = ("on", "scaled", "shift", "off")
 
 
-def default_emulator_error(emulator: Emulator | None) -> str:
-    """The emulator error model used when none is chosen: ``shift`` when ``emulator`` fitted a
-    parameter shift (every emulator fitted with its error model does; None: emulators a study
-    fits itself), else ``on`` (calibrated on 1–5 observations with and without noise:
-    docs/inference.md, "Coverage")."""
+def resolve_emulator_error(choice: str, emulator: Emulator | None) -> str:
+    """An ``--emulator-error`` choice with ``auto`` (the command line's default) resolved:
+    ``shift`` when ``emulator`` fitted a parameter shift (every emulator fitted with its error
+    model does; None: emulators a study fits itself), else ``on`` (calibrated on 1–5
+    observations with and without noise: docs/inference.md, "Coverage"). Other choices pass."""
+    if choice != "auto":
+        return choice
     excess = None if emulator is None else emulator.held_out_excess
     return "shift" if emulator is None or (excess is not None and excess.parameter_shift is not None) else "on"
 

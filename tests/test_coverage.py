@@ -12,9 +12,9 @@ from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study,
 from inference.studies import (
     EMULATOR_ERRORS,
     SamplerSettings,
-    default_emulator_error,
     emulator_error_flags,
     emulator_error_of,
+    resolve_emulator_error,
     spread_designs,
 )
 from skinfem.io import StrainDataset
@@ -62,15 +62,16 @@ def test_the_default_error_model_is_the_parameter_shift_where_the_emulator_fitte
     for the emulators a study fits itself), the per-weight error for one fitted before it."""
     import shutil
 
-    assert default_emulator_error(Emulator.load(small_emulator)) == "shift"
-    assert default_emulator_error(None) == "shift"
+    assert resolve_emulator_error("auto", Emulator.load(small_emulator)) == "shift"
+    assert resolve_emulator_error("auto", None) == "shift"
     older = tmp_path / "emu"
     shutil.copytree(small_emulator, older)
     meta = json.loads((older / "meta.json").read_text())
     meta["held_out_excess"].pop("parameter_shift")
     (older / "meta.json").write_text(json.dumps(meta))
     assert Emulator.load(older).held_out_excess is not None
-    assert default_emulator_error(Emulator.load(older)) == "on"
+    assert resolve_emulator_error("auto", Emulator.load(older)) == "on"
+    assert all(resolve_emulator_error(choice, Emulator.load(older)) == choice for choice in EMULATOR_ERRORS)
 
 
 def test_summary_is_the_share_of_cases_covered_with_its_binomial_sd():
