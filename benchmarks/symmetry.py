@@ -111,7 +111,10 @@ def main() -> None:
     from skinfem.config import load_config
     from skinfem.fenics import PETSc, dolfinx
     from skinfem.model import SkinModel
+    from skinfem.parallel import abort_on_uncaught
     from skinfem.params import Design, SkinParams
+
+    abort_on_uncaught("benchmarks/symmetry.py")  # e.g. a node without its image on one rank
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="paper")
