@@ -4,10 +4,11 @@
         [--fractions 0.25 0.5 0.75 0.875 0.9375 0.96875 0.984375 1]
         [--out benchmarks/results/homotopy_spectrum.json]
 
-A residual homotopy step that fails stalls on a plateau of its residual (benchmarks/homotopy.py,
-docs/criticism.md §3). Here the path itself is inspected on ``small``: from zero displacement at
-the full load of ``--design``, the homotopy R(u) = (1 - s) R(0) is solved by Newton–LU
-(backtracked, as ``SkinModel._residual_homotopy`` does, up to 30 steps) at each fraction s in
+A residual homotopy step that fails stalls on a plateau of its residual (docs/criticism.md §3;
+the homotopy was replaced by pseudo-transient continuation for that reason, benchmarks/far_start.py).
+Here the path itself is inspected on ``small``: from zero displacement at the full load of
+``--design``, the homotopy R(u) = (1 - s) R(0) is solved by Newton–LU (backtracked, every step
+factorised, up to 30 steps) at each fraction s in
 turn, each from the previous state. Per s: converged, Newton steps, residual norms at the start
 and end [N], the three smallest eigenvalues of the tangent on the free (non-Dirichlet) dofs
 [N/mm] (negative: the state is not a stable equilibrium of its loads), and the largest difference
@@ -23,7 +24,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from homotopy import MATERIALS
+from far_start import MATERIALS
 
 HERE = Path(__file__).resolve().parent
 NEWTON_STEPS = 30
@@ -41,10 +42,25 @@ def smallest_eigenvalues(model, free: np.ndarray, k: int = 3) -> list[float]:
     return [float(v) for v in np.linalg.eigvalsh(0.5 * (K + K.T))[:k]]
 
 
+def newton_toward(model, rhs) -> tuple[bool, int]:
+    """Newton–LU (a factorisation at every step) from the model's state towards R(u) = ``rhs``
+    (None: 0), the model's SNES options otherwise. Returns (converged, Newton steps)."""
+    from skinfem.fenics import PETSc, dolfinx
+
+    snes, x = model.problem.solver, model.problem.x
+    model._set_snes_option("snes_lag_preconditioner", 1)
+    dolfinx.fem.petsc.assign(model.u, x)
+    snes.solve(rhs, x)
+    x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    dolfinx.fem.petsc.assign(x, model.u)
+    converged = snes.getConvergedReason() > 0 and np.all(np.isfinite(model.u.x.array))
+    return bool(converged), snes.getIterationNumber()
+
+
 def main() -> None:
     from skinfem.config import load_config
     from skinfem.fenics import dolfinx
-    from skinfem.model import Factorisation, SkinModel
+    from skinfem.model import SkinModel
     from skinfem.params import Design, SkinParams
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -76,7 +92,7 @@ def main() -> None:
         rhs = residual0.copy()
         rhs.scale(1.0 - s)
         start = model.u.x.array.copy()
-        converged, steps, _ = model._newton(Factorisation.EVERY_STEP, None if s == 1 else rhs)
+        converged, steps = newton_toward(model, None if s == 1 else rhs)
         norms = snes.getConvergenceHistory()[0]
         row = {
             "s": s,

@@ -36,7 +36,7 @@ from skinfem.config import PARAM_NAMES, Config
 from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
-from skinfem.model import Factorisation, HomotopyStep
+from skinfem.model import Factorisation, FarStart
 from skinfem.parallel import collective
 from skinfem.sensitivity import DisplacementSensitivity
 
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 CONTINUATION_ITERATIONS = 8  # Newton iterations from a nearby point's states before ramping instead
-TRANSFER_ITERATIONS = 12  # per homotopy step from another mesh's states (the slowest measured: 9)
+TRANSFER_ITERATIONS = 12  # Newton–LU from another mesh's states before pseudo-time (the slowest measured: 9)
 
 
 class ForwardModel:
@@ -115,21 +115,18 @@ class TransferredRun:
     seconds: float
     factorizations: int  # Newton–LU factorisations of the tangent, a ramp's included
     continued: bool  # False: Newton did not converge and the load was ramped
-    homotopy_steps: list[HomotopyStep]  # each residual homotopy step
+    far_starts: list[FarStart]  # each equilibrium solved from the interpolated fields
 
 
-def _warn_of_ramp(design, homotopy_steps: list[HomotopyStep]) -> None:
+def _warn_of_ramp(design, far_starts: list[FarStart]) -> None:
     """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
-    fine mesh), with the steps of the residual homotopy that failed (those after the last one
-    that reached s = 1, e.g. the unloaded reference's): s tried, Newton iterations, failed or not."""
-    reached = [i for i, h in enumerate(homotopy_steps) if h.s == 1.0 and h.converged]
-    failed = homotopy_steps[reached[-1] + 1 :] if reached else homotopy_steps
-    steps = ", ".join(f"s = {h.s:g}: {h.iterations} its{'' if h.converged else ' (failed)'}" for h in failed)
+    fine mesh), with how the solve that failed went (the last one: an earlier one, e.g. the
+    unloaded reference's, converged)."""
     log.warning(
-        "design (%g, %g): Newton from another mesh's fields did not converge (homotopy %s); ramping the load",
+        "design (%g, %g): Newton from another mesh's fields did not converge (%s); ramping the load",
         design.alpha11,
         design.alpha22,
-        steps,
+        far_starts[-1].describe() if far_starts else "no solve recorded",
     )
 
 
@@ -271,7 +268,7 @@ class FEForward(ForwardModel):
         factorizations = model.factorizations
         if not continued:
             if start is not None and self.transferred:  # the costly case: a full ramp on a fine mesh
-                _warn_of_ramp(design, model.homotopy_steps)
+                _warn_of_ramp(design, model.far_starts)
             out[:] = 0.0
             states.frames.clear()
             states.sensitivities.clear()
@@ -279,7 +276,7 @@ class FEForward(ForwardModel):
             factorizations += model.factorizations
         if start is not None and self.transferred:
             seconds = time.perf_counter() - started
-            run = TransferredRun(self.designs[j], seconds, factorizations, continued, list(model.homotopy_steps))
+            run = TransferredRun(self.designs[j], seconds, factorizations, continued, list(model.far_starts))
             self.transferred_runs.append(run)
         if self.continuation is not None:
             self.continuation.record(j, states)
@@ -293,8 +290,9 @@ class FEForward(ForwardModel):
         ``cache_dir``, e.g. in a resumed check) is first solved by ``other`` at ``x``: one run on
         its mesh instead of a ramp on this one.
 
-        Newton is then Newton–LU, up to ``TRANSFER_ITERATIONS`` per step of a residual homotopy
-        (:meth:`skinfem.model.SkinModel.solve_frames`): from another mesh's fields GMRES
+        Newton is then Newton–LU, up to ``TRANSFER_ITERATIONS`` and followed by pseudo-transient
+        continuation if it stalls (:meth:`skinfem.model.SkinModel.solve_frames`): from another
+        mesh's fields GMRES
         preconditioned by the first step's factorisation stalls, and Newton needs more steps
         than from a nearby point's (quadratic check mesh to its edge refinement, mixed design:
         9), while on a refined mesh a load ramp costs more."""
@@ -322,7 +320,7 @@ class FEForward(ForwardModel):
 
     def _continuation_solver(self) -> tuple[int, Factorisation]:
         """(Newton iterations, first factorisation) of a continued solve before it is ramped:
-        from another mesh's states Newton–LU with a residual homotopy, else from a nearby
+        from another mesh's states Newton–LU, then pseudo-time, else from a nearby
         point's states GMRES on the previous factorisation (SkinModel.solve_frames)."""
         if self.transferred:
             return TRANSFER_ITERATIONS, Factorisation.EVERY_STEP

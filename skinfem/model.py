@@ -40,20 +40,21 @@ from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
 from skinfem.params import Design, SkinParams
+from skinfem.pseudo_time import PseudoTimeStep, pseudo_transient
 from skinfem.strain import ObservedCells, SkinStrainSampler, SurfaceStrainSampler, top_skin_cells
 
-# A residual homotopy step's Newton–LU is judged every HOMOTOPY_STRETCH iterations and given up
-# when a stretch did not cut the residual to HOMOTOPY_CONTRACTION of its start: damped
-# (backtracked) steps that barely reduce it rarely converge within the budget, and a halved
-# homotopy step is cheaper (benchmarks/homotopy.py). The slowest transfer measured to converge
-# (quadratic check mesh to its edge refinement, mixed design) cut it to 0.18 in its first three
-# steps and converged in nine (benchmarks/results/refined_estimate.json).
-HOMOTOPY_STRETCH = 3
-HOMOTOPY_CONTRACTION = 0.5
-HOMOTOPY_MIN_STEP = 1 / 16  # the smallest homotopy step tried before giving up
+# A start far from equilibrium (another mesh's fields) is solved by Newton–LU first, judged every
+# FAR_NEWTON_STRETCH iterations and given up when a stretch did not cut the residual to
+# FAR_NEWTON_CONTRACTION of its start: damped (backtracked, FAR_NEWTON_LINESEARCH) steps that
+# barely reduce it rarely converge within the budget. The slowest transfer measured to converge
+# by Newton alone (quadratic check mesh to its edge refinement, mixed design) cut it to 0.18 in
+# its first three steps and converged in nine (benchmarks/results/refined_estimate.json). Then
+# pseudo-transient continuation from the same start (skinfem.pseudo_time; benchmarks/far_start.py).
+FAR_NEWTON_STRETCH = 3
+FAR_NEWTON_CONTRACTION = 0.5
 DIVERGED_LINE_SEARCH = PETSc.SNES.ConvergedReason.DIVERGED_LINE_SEARCH
 DIVERGED_LINEAR_SOLVE = PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
-HOMOTOPY_LINESEARCH = "bt"  # PETSc line search of a homotopy step's Newton (benchmarks/homotopy.py)
+FAR_NEWTON_LINESEARCH = "bt"  # Newton from a far start: cp, l2 gave up as often (results/homotopy.json)
 
 
 class Factorisation(IntEnum):
@@ -92,15 +93,26 @@ class StrainFrames:
 
 
 @dataclass(frozen=True)
-class HomotopyStep:
-    """One step of a residual homotopy (:meth:`SkinModel._residual_homotopy`): the s tried,
-    whether Newton–LU reached it, its iterations, and the residual norms [N] at the start and
-    at the end of each stretch of ``HOMOTOPY_STRETCH`` iterations."""
+class FarStart:
+    """One equilibrium solved from a start far from it (:meth:`SkinModel._solve_far_start`):
+    whether it converged, Newton–LU's iterations and residual norms [N] (at the start and after
+    each stretch of ``FAR_NEWTON_STRETCH`` iterations), then, if Newton did not converge, each
+    pseudo-time step from the same start."""
 
-    s: float
     converged: bool
-    iterations: int
-    residuals: tuple[float, ...]
+    newton_iterations: int
+    newton_residuals: tuple[float, ...]
+    pseudo_time: tuple[PseudoTimeStep, ...] = ()
+
+    def describe(self) -> str:
+        """One line, e.g. "Newton–LU 3 its (0.0145 -> 0.0081 N), pseudo-time 80 steps (to 2e-06 N)"."""
+        newton = f"Newton–LU {self.newton_iterations} its"
+        if self.newton_residuals:
+            newton += f" ({self.newton_residuals[0]:.3g} -> {self.newton_residuals[-1]:.3g} N)"
+        if not self.pseudo_time:
+            return newton
+        kept = [step.residual for step in self.pseudo_time if step.accepted] or [float("nan")]
+        return f"{newton}, pseudo-time {len(self.pseudo_time)} steps (to {kept[-1]:.3g} N)"
 
 
 @dataclass
@@ -168,7 +180,7 @@ class SkinModel:
         self.problem = self._nonlinear_problem()
         self.factorizations = 0  # of the current simulation
         self._rebuild_pending = True  # the next Newton solve factorises at its first step (none yet)
-        self.homotopy_steps: list[HomotopyStep] = []  # of the last solve_frames
+        self.far_starts: list[FarStart] = []  # of the last solve_frames
         self.strain_sampler = self._observed_strain(terms)
         self.setup_seconds = time.perf_counter() - t0
 
@@ -371,19 +383,8 @@ class SkinModel:
         then never."""
         self._set_snes_option("snes_lag_preconditioner", lag)
 
-    def _snes_solve(self, rhs: PETSc.Vec | None) -> None:
-        """SNES from the current state: R(u) = 0, or R(u) = ``rhs`` (a residual homotopy step)."""
-        if rhs is None:
-            self.problem.solve()
-            return
-        x = self.problem.x
-        dolfinx.fem.petsc.assign(self.u, x)
-        self.problem.solver.solve(rhs, x)
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        dolfinx.fem.petsc.assign(x, self.u)
-
-    def _newton(self, policy: Factorisation, rhs: PETSc.Vec | None = None) -> tuple[bool, int, float]:
-        """One SNES solve of R(u) = ``rhs`` (None: 0) from the current state, factorising the
+    def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
+        """One SNES solve of R(u) = 0 from the current state, factorising the
         tangent as ``policy`` says (with ``solver.refactor_krylov = 0`` at every Newton step
         regardless). Returns (converged, Newton iterations, GMRES iterations per Newton step)."""
         snes = self.problem.solver
@@ -392,7 +393,7 @@ class SkinModel:
             policy = max(policy, Factorisation.FIRST_STEP)
         if reuse and policy != Factorisation.REUSE:
             self._set_lag(1 if policy == Factorisation.EVERY_STEP else -2)
-        self._snes_solve(rhs)
+        self.problem.solve()
         reason = snes.getConvergedReason()
         its = snes.getIterationNumber()  # 0: converged at the start, no Jacobian built
         if reuse and policy == Factorisation.EVERY_STEP:  # lag back from 1; "never" needs a rebuild first
@@ -425,10 +426,10 @@ class SkinModel:
             self.u.x.array[:] = start
             policy = Factorisation(policy + 1)
 
-    def _contracting_newton(self, rhs: PETSc.Vec | None) -> tuple[bool, int, tuple[float, ...]]:
-        """Newton–LU towards R(u) = ``rhs`` (None: 0) within the SNES iteration budget, run in
-        stretches of ``HOMOTOPY_STRETCH`` iterations and ended after a stretch whose last residual
-        norm is not below ``HOMOTOPY_CONTRACTION`` times its first. The relative tolerance stays
+    def _contracting_newton(self) -> tuple[bool, int, tuple[float, ...]]:
+        """Newton–LU towards R(u) = 0 within the SNES iteration budget, run in stretches of
+        ``FAR_NEWTON_STRETCH`` iterations and ended after a stretch whose last residual norm is
+        not below ``FAR_NEWTON_CONTRACTION`` times its first. The relative tolerance stays
         relative to the first stretch's starting residual. Returns (converged, iterations, the
         residual norms at the start and after each stretch)."""
         snes = self.problem.solver
@@ -436,60 +437,42 @@ class SkinModel:
         its, norms = 0, []
         try:
             while True:
-                self._set_snes_option("snes_max_it", min(HOMOTOPY_STRETCH, budget - its))
-                converged, n, _ = self._newton(Factorisation.EVERY_STEP, rhs)
+                self._set_snes_option("snes_max_it", min(FAR_NEWTON_STRETCH, budget - its))
+                converged, n, _ = self._newton(Factorisation.EVERY_STEP)
                 its += n
                 history = snes.getConvergenceHistory()[0]  # of this stretch
                 if len(history) == 0:  # stopped before any residual norm, e.g. a non-finite start
                     return False, its, tuple(norms)
                 first, last = float(history[0]), float(history[-1])
                 norms += [first, last] if not norms else [last]
-                if converged or its >= budget or not last < HOMOTOPY_CONTRACTION * first:
+                if converged or its >= budget or not last < FAR_NEWTON_CONTRACTION * first:
                     return converged, its, tuple(norms)
                 self._set_snes_option("snes_rtol", rtol * norms[0] / last)
         finally:
             self._set_snes_option("snes_rtol", rtol)
             self._set_snes_option("snes_max_it", budget)
 
-    def _residual_homotopy(self) -> bool:
-        """Newton–LU from the current state ``u0`` when it is far from equilibrium (e.g. another
-        mesh's fields): solve R(u) = (1 - s) R(u0) for s rising from 0 (where u0 solves it) to 1
-        (equilibrium), a full step first, doubled after a success and halved after a failure
-        (down to ``HOMOTOPY_MIN_STEP``), as the load ramp of :meth:`simulate` does. Each step's
-        Newton is given up as soon as it stalls (:meth:`_contracting_newton`): a halved step is
-        cheaper than the rest of a stalled Newton's budget. Newton steps are
-        backtracked here (PETSc's ``bt`` line search): from another mesh's fields a full step can
-        invert cells (a NaN residual after two steps, quadratic check mesh onto its refinement
-        with doubled muscle layers). Returns whether s = 1 was reached (the state is then the
-        equilibrium; else undefined)."""
-        x = self.u.x.array
-        snes = self.problem.solver
-        residual0 = self.problem.b.duplicate()
-        dolfinx.fem.petsc.assign(self.u, self.problem.x)
-        snes.computeFunction(self.problem.x, residual0)
-        rhs = residual0.duplicate()
-        s, step = 0.0, 1.0
-        self._set_snes_option("snes_linesearch_type", HOMOTOPY_LINESEARCH)
+    def _solve_far_start(self) -> bool:
+        """Equilibrium from a current state far from it (e.g. another mesh's fields): Newton–LU,
+        backtracked (PETSc's ``bt`` line search: from another mesh's fields a full step can
+        invert cells) and given up as soon as it stalls (:meth:`_contracting_newton`), then
+        pseudo-transient continuation from the same state (:mod:`skinfem.pseudo_time`), whose
+        states descend the energy where those of a residual homotopy pass through saddle points
+        (docs/criticism.md §3). Records a :class:`FarStart`; returns whether it converged
+        (the state is then the equilibrium, else undefined)."""
+        start = self.u.x.array.copy()
+        self._set_snes_option("snes_linesearch_type", FAR_NEWTON_LINESEARCH)
         try:
-            while s < 1.0:
-                s_new = min(1.0, s + step)
-                saved = x.copy()
-                residual0.copy(rhs)
-                rhs.scale(1.0 - s_new)
-                converged, its, norms = self._contracting_newton(None if s_new == 1.0 else rhs)
-                self.homotopy_steps.append(HomotopyStep(s_new, converged, its, norms))
-                if converged:
-                    s, step = s_new, 2 * step
-                    continue
-                x[:] = saved
-                step = (s_new - s) / 2  # half the step that failed
-                if step < HOMOTOPY_MIN_STEP:
-                    return False
-            return True
+            converged, its, norms = self._contracting_newton()
         finally:
             self._set_snes_option("snes_linesearch_type", "basic")
-            residual0.destroy()
-            rhs.destroy()
+        steps = []
+        if not converged:
+            self.u.x.array[:] = start
+            converged, steps = pseudo_transient(self.problem, self.config.solver.atol)
+            self.factorizations += len(steps)
+        self.far_starts.append(FarStart(converged, its, norms, tuple(steps)))
+        return converged
 
     def load_fractions(self) -> np.ndarray:
         n = self.config.solver.increments
@@ -617,12 +600,12 @@ class SkinModel:
         with a factorisation from the first step stalls. A failed ``REUSE`` attempt is retried
         once with a fresh factorisation, not escalated to Newton–LU (up to ``max_iterations``
         factorisations): that is left to the load ramp the caller falls back to. A failed
-        ``EVERY_STEP`` attempt continues by a residual homotopy from the same guess
-        (:meth:`_residual_homotopy`), cheaper than a ramp on a fine mesh. The correction Newton
+        ``EVERY_STEP`` attempt continues by pseudo-transient continuation from the same guess
+        (:meth:`_solve_far_start`), cheaper than a ramp on a fine mesh. The correction Newton
         made to one frame's guess is added to the next frame's guess (the guesses share their
         error, e.g. another mesh's interpolation), so with ``EVERY_STEP`` only the first frame
         is solved by Newton–LU: later frames take GMRES on a fresh factorisation, escalated and
-        then the homotopy if that fails.
+        then the far-start solve if that fails.
 
         Equilibrium does not depend on the load path, so where it is unique the states equal
         :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
@@ -642,17 +625,17 @@ class SkinModel:
             if factorisation != Factorisation.EVERY_STEP:
                 converged, _, krylov = self._newton_escalating(policy, most)
                 return converged, krylov
-            if corrected:  # near equilibrium: GMRES first, the homotopy only if that fails
+            if corrected:  # near equilibrium: GMRES first, the far-start solve only if that fails
                 start = self.u.x.array.copy()
                 converged, _, krylov = self._newton_escalating(policy, most)
                 if converged:
                     return True, krylov
                 self.u.x.array[:] = start
-            return self._residual_homotopy(), 1.0
+            return self._solve_far_start(), 1.0
 
         try:
             self.set_params(params)
-            self.factorizations, self.homotopy_steps = 0, []
+            self.factorizations, self.far_starts = 0, []
             start = np.zeros_like(self.u.x.array) if reference_guess is None else reference_guess
             if not self._reference_equilibrium(design, start, lambda: newton(factorisation)[0], on_reference):
                 return False

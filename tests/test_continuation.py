@@ -181,9 +181,9 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
     # each transferred run is recorded: both designs continued, by Newton–LU
     assert [(r.design, r.continued) for r in fine.transferred_runs] == [(d, True) for d in fine.designs]
     assert all(r.factorizations >= 1 and r.seconds > 0 for r in fine.transferred_runs)
-    assert all((r.homotopy_steps[-1].s, r.homotopy_steps[-1].converged) == (1.0, True) for r in fine.transferred_runs)
+    assert all(r.far_starts[-1].converged for r in fine.transferred_runs)
     # the first frame's correction of its interpolated guess is carried to the second frame's
-    # guess: one factorisation there instead of a second homotopy (4; measured: 7 and 6 in all)
+    # guess: one factorisation there instead of a second Newton–LU (4; measured: 7 and 6 in all)
     one_frame, two_frames = sorted(fine.transferred_runs, key=lambda r: r.design[0])
     assert two_frames.design == (0.05, -0.05)
     assert two_frames.factorizations <= one_frame.factorizations + 2
@@ -217,10 +217,11 @@ def test_a_refined_mesh_continues_from_a_check_mesh_whose_fields_came_from_its_c
 
 @pytest.mark.slow
 def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, mesh_dir, monkeypatch, caplog):
-    """A transfer whose Newton cannot converge (one iteration per homotopy step) falls back to
-    the load ramp: the ramped fields, and a warning naming the design (the ramp is what makes
-    a refined run slow)."""
+    """A transfer whose Newton (one iteration) and pseudo-time (one step) cannot converge falls
+    back to the load ramp: the ramped fields, and a warning naming the design and how the
+    solve went (the ramp is what makes a refined run slow)."""
     import inference.forward
+    import skinfem.pseudo_time
     from inference.criticism.discretisation import refined_config
 
     coarse = two_design_forward(small_config, mesh_dir, continuation=True)
@@ -230,29 +231,28 @@ def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, 
     fine = two_design_forward(fine_config, mesh_dir, continuation=True)
     fine.continue_from(coarse, x)
     monkeypatch.setattr(inference.forward, "TRANSFER_ITERATIONS", 1)
+    monkeypatch.setattr(skinfem.pseudo_time, "BUDGET", 1)
     f_fine = fine(x)
     assert fine.continued == 0
-    assert (
-        "design (-0.05, 0.05): Newton from another mesh's fields did not converge (homotopy s = 1: 1 its (failed), "
-        "s = 0.5: 1 its (failed)" in caplog.text
-    )
-    assert "s = 0.0625: 1 its (failed)); ramping the load" in caplog.text  # four halvings, then the ramp
-    # the record counts the five failed homotopy steps' factorisations and the ramp's
+    message = "design (-0.05, 0.05): Newton from another mesh's fields did not converge (Newton–LU 1 its ("
+    assert message in caplog.text and "N), pseudo-time 1 steps (to " in caplog.text
+    # the record counts the failed solve's two factorisations and the ramp's
     assert [r.continued for r in fine.transferred_runs] == [False, False]
-    assert all(r.factorizations > 5 for r in fine.transferred_runs)
-    # the unloaded reference's homotopy (already at equilibrium), then the frame's five
-    assert [len(r.homotopy_steps) for r in fine.transferred_runs] == [6, 6]
-    last_steps = [r.homotopy_steps[-1] for r in fine.transferred_runs]
-    assert all((h.s, h.converged, h.iterations, len(h.residuals)) == (0.0625, False, 1, 2) for h in last_steps)
+    assert all(r.factorizations > 2 for r in fine.transferred_runs)
+    # the unloaded reference (already at equilibrium: no Newton step), then the frame's failure
+    for run in fine.transferred_runs:
+        reference, frame = run.far_starts
+        assert (reference.converged, reference.newton_iterations, reference.pseudo_time) == (True, 0, ())
+        assert (frame.converged, frame.newton_iterations, len(frame.newton_residuals)) == (False, 1, 2)
+        assert len(frame.pseudo_time) == 1
     f_ramped = two_design_forward(fine_config, mesh_dir, continuation=False)(x)
     np.testing.assert_allclose(f_fine, f_ramped, atol=1e-8 * np.abs(f_ramped).max())
 
 
-def test_a_residual_homotopy_reaches_the_ramped_equilibrium_where_newton_fails(small_model):
+def test_pseudo_time_reaches_the_ramped_equilibrium_where_newton_fails(small_model):
     """From zero displacement at the full load Newton capped at 4 iterations fails (the ramp's
-    first increment, a tenth of the load, takes 4); the residual homotopy R(u) = (1 - s) R(0),
-    with the same cap per step, reaches the ramped simulation's equilibrium to the Newton
-    tolerance."""
+    first increment, a tenth of the load, takes 4); pseudo-transient continuation from there
+    reaches the ramped simulation's equilibrium to the Newton tolerance."""
     from skinfem.model import Factorisation
     from skinfem.params import Design, SkinParams
 
@@ -263,13 +263,17 @@ def test_a_residual_homotopy_reaches_the_ramped_equilibrium_where_newton_fails(s
     assert not small_model.solve_frames(params, design, zero, max_iterations=4, factorisation=Factorisation.FIRST_STEP)
     assert small_model.solve_frames(params, design, zero, max_iterations=4, factorisation=Factorisation.EVERY_STEP)
     np.testing.assert_allclose(small_model.u.x.array, ramped, atol=1e-8 * np.abs(ramped).max())
+    (solve,) = small_model.far_starts
+    assert solve.converged and solve.newton_iterations == 4 and solve.pseudo_time
+    # the factorisations: Newton's four, then one per pseudo-time step
+    assert small_model.factorizations == 4 + len(solve.pseudo_time)
 
 
-def test_a_stalled_homotopy_step_is_given_up_after_one_stretch(small_model, monkeypatch):
-    """From zero at a large load (0.125, -0.125) the full homotopy step stalls: its Newton–LU
-    does not halve the residual in its first three iterations, and the step is halved then
-    instead of after the whole cap (12); the later steps are the same and the run reaches the
-    ramped equilibrium (measured 15 factorisations against 24)."""
+def test_a_stalled_newton_from_a_far_start_is_given_up_after_one_stretch(small_model, monkeypatch):
+    """From zero at a large load (0.125, -0.125) Newton–LU stalls: it does not halve the residual
+    in its first three iterations and is given up then, instead of after the whole cap (12);
+    pseudo-time from the same start then takes the same steps and reaches the ramped
+    equilibrium."""
     import skinfem.model
     from skinfem.model import Factorisation
     from skinfem.params import Design, SkinParams
@@ -279,26 +283,26 @@ def test_a_stalled_homotopy_step_is_given_up_after_one_stretch(small_model, monk
     ramped = small_model.u.x.array.copy()
     zero = [(1.0, np.zeros_like(ramped))]
 
-    def homotopy(stretch: int) -> tuple[int, list]:
-        monkeypatch.setattr(skinfem.model, "HOMOTOPY_STRETCH", stretch)
+    def far_start(stretch: int):
+        monkeypatch.setattr(skinfem.model, "FAR_NEWTON_STRETCH", stretch)
         assert small_model.solve_frames(params, design, zero, max_iterations=12, factorisation=Factorisation.EVERY_STEP)
         np.testing.assert_allclose(small_model.u.x.array, ramped, atol=1e-8 * np.abs(ramped).max())
-        return small_model.factorizations, list(small_model.homotopy_steps)
+        (solve,) = small_model.far_starts
+        return small_model.factorizations, solve
 
-    (with_stop, stopped), (without_stop, unstopped) = homotopy(3), homotopy(12)
-    first = stopped[0]
-    assert (first.s, first.converged, first.iterations) == (1.0, False, 3) and unstopped[0].iterations == 12
-    assert len(first.residuals) == 2 and first.residuals[1] > 0.5 * first.residuals[0]  # why it stopped
-    path = lambda steps: [(h.s, h.converged, h.iterations) for h in steps]  # noqa: E731
-    assert path(stopped[1:]) == path(unstopped[1:]) and len(stopped) > 1
+    (with_stop, stopped), (without_stop, unstopped) = far_start(3), far_start(12)
+    assert (stopped.newton_iterations, unstopped.newton_iterations) == (3, 12)
+    residuals = stopped.newton_residuals
+    assert len(residuals) == 2 and residuals[1] > 0.5 * residuals[0]  # why it stopped
+    assert stopped.pseudo_time == unstopped.pseudo_time and stopped.pseudo_time
     assert with_stop == without_stop - 9
 
 
-def test_a_non_finite_start_is_a_failed_homotopy_not_an_exception(small_model):
-    """A starting field with a NaN (e.g. a transfer gone wrong) has no finite residual: every
-    homotopy step stops before its first Newton step and the solve reports failure (the caller
-    then ramps the load) instead of raising."""
-    from skinfem.model import HOMOTOPY_MIN_STEP, Factorisation
+def test_a_non_finite_start_is_a_failed_solve_not_an_exception(small_model):
+    """A starting field with a NaN (e.g. a transfer gone wrong) has no finite residual: Newton
+    stops before its first step, pseudo-time takes none, and the solve reports failure (the
+    caller then ramps the load) instead of raising."""
+    from skinfem.model import Factorisation, FarStart
     from skinfem.params import Design, SkinParams
 
     start = np.zeros_like(small_model.u.x.array)
@@ -306,6 +310,4 @@ def test_a_non_finite_start_is_a_failed_homotopy_not_an_exception(small_model):
     params, design = SkinParams.from_array(TRUTH), Design(0.05, -0.05)
     newton_lu = Factorisation.EVERY_STEP
     assert not small_model.solve_frames(params, design, [(1.0, start)], max_iterations=4, factorisation=newton_lu)
-    steps = small_model.homotopy_steps
-    assert [h.s for h in steps] == [1.0 / 2**k for k in range(len(steps))] and steps[-1].s == HOMOTOPY_MIN_STEP
-    assert all(not h.converged and h.iterations == 0 and h.residuals == () for h in steps)
+    assert small_model.far_starts == [FarStart(False, 0, (), ())]

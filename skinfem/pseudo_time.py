@@ -1,0 +1,106 @@
+"""Pseudo-transient continuation: equilibrium from a start far from it.
+
+A start far from equilibrium (another mesh's fields interpolated onto a refined one, or zero
+displacement at the full load) is solved by following the energy's gradient flow
+D du/dtau = -R(u) in pseudo-time tau with implicit Euler steps, each linearised once:
+
+    (K(u) + D / dt) du = -R(u),    u <- u + du,
+
+with D = |diag K(u0)| (the tangent's diagonal at the start, so that dt is dimensionless and the
+membrane, 10^7 times stiffer than the skin, is damped in proportion). While dt is small the
+steps follow the flow, which descends the energy to a stable equilibrium; as the residual falls
+dt grows and the steps become Newton steps. A residual homotopy R(u) = (1 - s) R(u0) instead
+passes through saddle points — the lamina compressed by the homotopy's constant loads — where
+its Newton stalls (docs/criticism.md §3; ``benchmarks/homotopy_spectrum.py``; the homotopy's
+cost on the starts of ``benchmarks/far_start.py``: ``benchmarks/results/homotopy.json``).
+
+Step control: a step is accepted when its residual norm is finite and at most ``RISE`` times
+the previous one; dt then grows by twice the residual's fall (switched evolution relaxation),
+at least ``MIN_GROWTH`` x and at most ``GROWTH`` x. A rejected step is undone and dt divided by ``SHRINK``.
+One LU factorisation per step (MUMPS), in place of the SNES's own, which is freed (its next
+solve factorises again). Units: residuals in N, dofs in mm, dt dimensionless.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from skinfem.fenics import PETSc, dolfinx
+
+FIRST_STEP = 10.0  # dt of the first step (benchmarks/far_start.py: 1, 3 and 10 all converge there)
+BUDGET = 80  # steps (factorisations) before giving up (benchmarks/far_start.py: up to 70)
+RISE = 2.0
+MIN_GROWTH = 2.0
+GROWTH = 10.0
+SHRINK = 4.0
+
+
+@dataclass(frozen=True)
+class PseudoTimeStep:
+    """One pseudo-time step: its dt, the residual norm [N] it reached, and whether it was kept."""
+
+    dt: float
+    residual: float
+    accepted: bool
+
+
+def pseudo_transient(
+    problem: dolfinx.fem.petsc.NonlinearProblem,
+    atol: float,
+    first_step: float | None = None,
+    budget: int | None = None,
+) -> tuple[bool, list[PseudoTimeStep]]:
+    """Pseudo-transient continuation of ``problem`` (its SNES's residual and tangent, Dirichlet
+    conditions included) from the current state of its solution function to a residual norm
+    below ``atol`` [N] (module doc; not relative to the start's, which is large and arbitrary).
+    Collective; every rank gets the same result. ``first_step`` and ``budget`` default to
+    ``FIRST_STEP`` and ``BUDGET``. Returns (converged, the steps); the state is the last
+    accepted one."""
+    first_step = FIRST_STEP if first_step is None else first_step
+    budget = BUDGET if budget is None else budget
+    snes, x, residual, tangent = problem.solver, problem.x, problem.b, problem.A
+    u = problem.u
+    snes.getKSP().getPC().reset()  # free Newton's factorisation: one is held at a time (SNES redoes it)
+    dolfinx.fem.petsc.assign(u, x)
+    snes.computeFunction(x, residual)
+    snes.computeJacobian(x, tangent, tangent)
+    damping = tangent.getDiagonal()
+    damping.abs()
+    shift, du, previous = damping.duplicate(), x.duplicate(), x.duplicate()
+    ksp = PETSc.KSP().create(x.comm)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("mumps")
+    norm = residual.norm()
+    dt, steps = first_step, []
+    try:
+        while norm >= atol and len(steps) < budget and np.isfinite(norm):
+            if steps:
+                snes.computeJacobian(x, tangent, tangent)
+            damping.copy(shift)
+            shift.scale(1.0 / dt)
+            tangent.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
+            ksp.setOperators(tangent)
+            ksp.solve(residual, du)
+            x.copy(previous)
+            x.axpy(-1.0, du)
+            snes.computeFunction(x, residual)
+            new = residual.norm()
+            accepted = bool(np.isfinite(new) and new <= RISE * norm)
+            steps.append(PseudoTimeStep(dt, float(new), accepted))
+            if accepted:
+                dt *= min(GROWTH, max(MIN_GROWTH, 2.0 * norm / new))
+                norm = new
+            else:
+                previous.copy(x)
+                snes.computeFunction(x, residual)
+                dt /= SHRINK
+    finally:
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        dolfinx.fem.petsc.assign(x, u)
+        for v in (damping, shift, du, previous):
+            v.destroy()
+        ksp.destroy()
+    return bool(norm < atol), steps
