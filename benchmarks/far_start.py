@@ -17,8 +17,8 @@ the factorisations (Newton's and one per pseudo-time step), the runs that gave u
 back to a load ramp), seconds, and for runs that converged the largest difference from the
 ramped equilibrium of :meth:`SkinModel.simulate` relative to its largest displacement
 (equilibrium does not depend on the path); and the same per smallest growth of dt after a kept
-step (``--min-growths``, ``skinfem.pseudo_time.MIN_GROWTH``). The residual homotopy this replaced was measured on
-the same starts: ``benchmarks/results/homotopy.json``.
+step (``--min-growths``, ``skinfem.pseudo_time.MIN_GROWTH``). The residual homotopy this
+replaced was measured on the same starts: ``benchmarks/results/homotopy.json``.
 ``--transfer``: the refined run that stalled the homotopy, reproduced — the stiffer-muscle seed-4
 check on the quadratic check mesh (``criticism_q2_muscle_seed4_rerun.json``, ``third_rerun``:
 its biaxial design's refined run took 48 factorisations, 1,629 s): the check mesh's equilibrium at

@@ -120,13 +120,13 @@ class TransferredRun:
 
 def _warn_of_ramp(design, far_starts: list[FarStart]) -> None:
     """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
-    fine mesh), with how the solve that failed went (the last one: an earlier one, e.g. the
-    unloaded reference's, converged)."""
+    fine mesh), with how the solve that failed went (the last of ``far_starts``: every failed
+    transferred solve records one; an earlier one, e.g. the unloaded reference's, converged)."""
     log.warning(
         "design (%g, %g): Newton from another mesh's fields did not converge (%s); ramping the load",
         design.alpha11,
         design.alpha22,
-        far_starts[-1].describe() if far_starts else "no solve recorded",
+        far_starts[-1].describe(),
     )
 
 

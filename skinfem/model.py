@@ -111,8 +111,9 @@ class FarStart:
             newton += f" ({self.newton_residuals[0]:.3g} -> {self.newton_residuals[-1]:.3g} N)"
         if not self.pseudo_time:
             return newton
-        kept = [step.residual for step in self.pseudo_time if step.accepted] or [float("nan")]
-        return f"{newton}, pseudo-time {len(self.pseudo_time)} steps (to {kept[-1]:.3g} N)"
+        kept = [step.residual for step in self.pseudo_time if step.accepted]
+        reached = f"to {kept[-1]:.3g} N" if kept else "none kept"
+        return f"{newton}, pseudo-time {len(self.pseudo_time)} steps ({reached})"
 
 
 @dataclass

@@ -311,3 +311,17 @@ def test_a_non_finite_start_is_a_failed_solve_not_an_exception(small_model):
     newton_lu = Factorisation.EVERY_STEP
     assert not small_model.solve_frames(params, design, [(1.0, start)], max_iterations=4, factorisation=newton_lu)
     assert small_model.far_starts == [FarStart(False, 0, (), ())]
+
+
+def test_a_far_start_describes_itself_in_one_line_without_a_nan():
+    """The ramp warning's words: Newton's iterations and residuals, pseudo-time's steps and the
+    residual its last kept step reached, or that none was kept."""
+    from skinfem.model import FarStart
+    from skinfem.pseudo_time import PseudoTimeStep
+
+    steps = (PseudoTimeStep(10.0, 2e-3, True), PseudoTimeStep(100.0, 9e-3, False))
+    assert FarStart(False, 3, (0.0145, 0.0081), steps).describe() == (
+        "Newton–LU 3 its (0.0145 -> 0.0081 N), pseudo-time 2 steps (to 0.002 N)"
+    )
+    assert FarStart(False, 1, (0.0145, 0.012), steps[1:]).describe().endswith("pseudo-time 1 steps (none kept)")
+    assert FarStart(True, 5, (0.0145, 1e-11)).describe() == "Newton–LU 5 its (0.0145 -> 1e-11 N)"
