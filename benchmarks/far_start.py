@@ -1,9 +1,9 @@
 """Cost of solving an equilibrium from a start far from it, by first pseudo-time step.
 
     python benchmarks/far_start.py [--config small] [--loads 0.1 0.125 0.15 0.175 0.2]
-                                   [--first-steps 1 3 10] [--min-growths 2 4]
+                                   [--first-steps 1 3 10] [--min-growths 2 4] [--refactor-krylov 10]
                                    [--out benchmarks/results/far_start.json]
-    python benchmarks/far_start.py --transfer [--first-steps 10] [--min-growths 2]
+    python benchmarks/far_start.py --transfer [--first-steps 10] [--min-growths 2] [--refactor-krylov 10]
                                    [--out benchmarks/results/far_start_transfer.json]
 
 A refined run of the discretisation estimate starts from another mesh's fields. Its Newton–LU
@@ -17,13 +17,16 @@ the factorisations (Newton's and one per pseudo-time step), the runs that gave u
 back to a load ramp), seconds, and for runs that converged the largest difference from the
 ramped equilibrium of :meth:`SkinModel.simulate` relative to its largest displacement
 (equilibrium does not depend on the path); and the same per smallest growth of dt after a kept
-step (``--min-growths``, ``skinfem.pseudo_time.MIN_GROWTH``). The residual homotopy this
+step (``--min-growths``, ``skinfem.pseudo_time.MIN_GROWTH``), and per ``--refactor-krylov`` (``solver.refactor_krylov``:
+0 factorises at every pseudo-time step, n > 0 keeps a factorisation as GMRES's preconditioner
+until a solve needs more than n iterations). The residual homotopy this
 replaced was measured on the same starts: ``benchmarks/results/homotopy.json``.
 ``--transfer``: the refined run that stalled the homotopy, reproduced — the stiffer-muscle seed-4
 check on the quadratic check mesh (``criticism_q2_muscle_seed4_rerun.json``, ``third_rerun``:
 its biaxial design's refined run took 48 factorisations, 1,629 s): the check mesh's equilibrium at
 that check's calibrated baseline, interpolated onto its edge refinement (224k dofs) and solved
-there as a transferred run is (one rank, ~13 minutes, ~10 GB). Recorded, not asserted.
+there as a transferred run is (one rank, ~13 minutes, ~10 GB); each ``--refactor-krylov`` is kept
+under its own key of the results file. Recorded, not asserted.
 """
 
 from __future__ import annotations
@@ -47,10 +50,9 @@ MATERIALS = {  # mu [MPa], k1 [MPa], k2, kappa, theta [deg]
     "stiff": (2.4e-3, 0.03, 20.0, 0.1, 60.0),
 }
 CAP = 12  # Newton–LU iterations from a far start, as for a transferred run (inference.forward)
-# the baseline calibrated by the stiffer-muscle seed-4 check (its report), and the design whose
+# the baseline calibrated by the stiffer-muscle seed-4 check (its report); its biaxial design's
 # refined run stalled the residual homotopy
 TRANSFER_PARAMS = (6.04e-4, 0.0117, 8.31, 0.2842, 26.2)
-TRANSFER_DESIGN = (0.05, 0.05)
 
 
 def cases(loads) -> list[tuple[str, SkinParams, Design]]:
@@ -105,23 +107,35 @@ def run_variant(model, runs_of: list, ramped: list[np.ndarray]) -> dict:
     }
 
 
-def run_transfer(mesh_dir: Path) -> dict:
-    """The transferred refined run of ``--transfer`` (module doc): dofs, seconds of the check
-    mesh's simulation and of the refined run, converged, factorisations, the solve's record."""
-    import skinfem.pseudo_time
-    from inference.criticism.discretisation import refined_config
+def transfer_guess(mesh_dir: Path, params: SkinParams, design: Design) -> tuple:
+    """The check mesh's equilibrium at ``params`` and the full load of ``design``, and the seconds
+    it took (``--transfer``)."""
     from skinfem.config import load_config
-    from skinfem.continuation import ConvergedStates, transfer
-    from skinfem.model import Factorisation, SkinModel
-    from skinfem.params import Design, SkinParams
+    from skinfem.continuation import ConvergedStates
+    from skinfem.model import SkinModel
 
-    params, design = SkinParams.from_array(np.array(TRANSFER_PARAMS)), Design(*TRANSFER_DESIGN)
     start = time.perf_counter()
     coarse = SkinModel(load_config("check").with_changes(solver={"increments": 2}), mesh_dir=mesh_dir)
     coarse.simulate(params, design)
     states = ConvergedStates(np.zeros(5), None, {1.0: coarse.u.x.array.copy()})
-    check_seconds = time.perf_counter() - start
-    fine = SkinModel(refined_config(coarse.config, "edge"), mesh_dir=mesh_dir)
+    return coarse, states, time.perf_counter() - start
+
+
+def run_transfer(
+    coarse, states, params: SkinParams, design: Design, refactor_krylov: int, stretch: int, mesh_dir: Path
+) -> dict:
+    """The transferred refined run of ``--transfer`` (module doc) from ``coarse``'s ``states``,
+    its Newton–LU judged every ``stretch`` iterations (0: pseudo-time only): dofs, seconds,
+    converged, factorisations, the solve's record."""
+    import skinfem.model
+    import skinfem.pseudo_time
+    from inference.criticism.discretisation import refined_config
+    from skinfem.continuation import transfer
+    from skinfem.model import Factorisation, SkinModel
+
+    skinfem.model.FAR_NEWTON_STRETCH = stretch
+    fine_config = refined_config(coarse.config, "edge").with_changes(solver={"refactor_krylov": refactor_krylov})
+    fine = SkinModel(fine_config, mesh_dir=mesh_dir)
     guess = transfer(states, coarse.V, fine.V).frames[1.0]
     start = time.perf_counter()
     converged = fine.solve_frames(
@@ -131,9 +145,8 @@ def run_transfer(mesh_dir: Path) -> dict:
         "first_step": skinfem.pseudo_time.FIRST_STEP,
         "min_growth": skinfem.pseudo_time.MIN_GROWTH,
         "params": TRANSFER_PARAMS,
-        "design": TRANSFER_DESIGN,
+        "design": [design.alpha11, design.alpha22],
         "dofs": [coarse.n_dofs, fine.n_dofs],
-        "check_mesh_seconds": round(check_seconds, 1),
         "refined_seconds": round(time.perf_counter() - start, 1),
         "converged": converged,
         "factorizations": fine.factorizations,
@@ -142,15 +155,37 @@ def run_transfer(mesh_dir: Path) -> dict:
 
 
 def write_transfer(args) -> None:
-    """``--transfer``: the stalled transfer with the model's pseudo-time settings unless given."""
+    """``--transfer``: the stalled transfer for every design, ``--refactor-krylov`` and
+    ``--newton-stretch``, with the model's pseudo-time settings unless given; a variant already
+    in the results file is not run again."""
     import skinfem.pseudo_time as pt
+    from skinfem.params import Design, SkinParams
 
     first_step = (args.first_steps or [pt.FIRST_STEP])[0]
     growth = (args.min_growths or [pt.MIN_GROWTH])[0]
     set_pseudo_time(first_step, growth)
-    command = f"python benchmarks/far_start.py --transfer --first-steps {first_step:g} --min-growths {growth:g}"
-    record = {"command": command, **run_transfer(args.mesh_dir)}
-    (args.out or HERE / "results" / "far_start_transfer.json").write_text(json.dumps(record, indent=1) + "\n")
+    out = args.out or HERE / "results" / "far_start_transfer.json"
+    results = json.loads(out.read_text()) if out.exists() else {"variants": {}}
+    params = SkinParams.from_array(np.array(TRANSFER_PARAMS))
+    for design in (Design(*map(float, d.split(","))) for d in args.designs):
+        coarse = None
+        for refactor in args.refactor_krylov or [10]:
+            for stretch in args.newton_stretch:
+                name = f"design ({design.alpha11:g}, {design.alpha22:g})"
+                key = f"{name}, refactor_krylov {refactor}, Newton stretch {stretch}"
+                if key in results["variants"]:
+                    continue
+                if coarse is None:
+                    coarse, states, seconds = transfer_guess(args.mesh_dir, params, design)
+                command = (
+                    f"python benchmarks/far_start.py --transfer --first-steps {first_step:g} --min-growths {growth:g}"
+                    f" --designs {design.alpha11:g},{design.alpha22:g} --refactor-krylov {refactor}"
+                    f" --newton-stretch {stretch}"
+                )
+                record = run_transfer(coarse, states, params, design, refactor, stretch, args.mesh_dir)
+                results["variants"][key] = {"command": command, "check_mesh_seconds": round(seconds, 1), **record}
+                print(key, {k: v for k, v in record.items() if k != "far_start"}, flush=True)
+                out.write_text(json.dumps(results, indent=1) + "\n")
 
 
 def write_far_starts(args) -> None:
@@ -159,22 +194,25 @@ def write_far_starts(args) -> None:
     from skinfem.model import SkinModel
 
     first_steps, growths = args.first_steps or [1.0, 3.0, 10.0], args.min_growths or [2.0, 4.0]
-    model = SkinModel(load_config(args.config), mesh_dir=args.mesh_dir)
-    runs_of = cases(args.loads)
-    ramped = []
-    for _, params, design in runs_of:
-        model.simulate(params, design)
-        ramped.append(model.u.x.array.copy())
-    results = {}
-    for growth in growths:
-        for dt in first_steps:
-            set_pseudo_time(dt, growth)
-            name = f"first pseudo-time step {dt:g}, growth at least {growth:g}x"
-            results[name] = result = run_variant(model, runs_of, ramped)
-            print(name, {k: v for k, v in result.items() if k != "runs"}, flush=True)
+    refactors = args.refactor_krylov or [load_config(args.config).solver.refactor_krylov]
+    runs_of, results = cases(args.loads), {}
+    for refactor in refactors:
+        config = load_config(args.config).with_changes(solver={"refactor_krylov": refactor})
+        model = SkinModel(config, mesh_dir=args.mesh_dir)
+        ramped = []
+        for _, params, design in runs_of:
+            model.simulate(params, design)
+            ramped.append(model.u.x.array.copy())
+        for growth in growths:
+            for dt in first_steps:
+                set_pseudo_time(dt, growth)
+                name = f"first pseudo-time step {dt:g}, growth at least {growth:g}x, refactor_krylov {refactor}"
+                results[name] = result = run_variant(model, runs_of, ramped)
+                print(name, {k: v for k, v in result.items() if k != "runs"}, flush=True)
     command = (
         f"python benchmarks/far_start.py --config {args.config} --loads {' '.join(map(str, args.loads))}"
         f" --first-steps {' '.join(map(str, first_steps))} --min-growths {' '.join(map(str, growths))}"
+        f" --refactor-krylov {' '.join(map(str, refactors))}"
     )
     summary = {"command": command, "config": args.config, "dofs": model.n_dofs, "cap": CAP, "variants": results}
     (args.out or HERE / "results" / "far_start.json").write_text(json.dumps(summary, indent=1) + "\n")
@@ -186,7 +224,10 @@ def main() -> None:
     parser.add_argument("--loads", nargs="+", type=float, default=[0.1, 0.125, 0.15, 0.175, 0.2])
     parser.add_argument("--first-steps", nargs="+", type=float, help="default: 1 3 10 (--transfer: the model's)")
     parser.add_argument("--min-growths", nargs="+", type=float, help="default: 2 4 (--transfer: the model's)")
+    parser.add_argument("--refactor-krylov", nargs="+", type=int, help="default: the config's (10)")
     parser.add_argument("--transfer", action="store_true", help="the quadratic check mesh's stalled transfer")
+    parser.add_argument("--designs", nargs="+", default=["0.05,0.05"], help="--transfer: alpha11,alpha22 each")
+    parser.add_argument("--newton-stretch", nargs="+", type=int, default=[3], help="--transfer; 0: pseudo-time only")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()

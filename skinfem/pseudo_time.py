@@ -17,8 +17,15 @@ cost on the starts of ``benchmarks/far_start.py``: ``benchmarks/results/homotopy
 Step control: a step is accepted when its residual norm is finite and at most ``RISE`` times
 the previous one; dt then grows by twice the residual's fall (switched evolution relaxation),
 at least ``MIN_GROWTH`` x and at most ``GROWTH`` x. A rejected step is undone and dt divided by ``SHRINK``.
-One LU factorisation per step (MUMPS), in place of the SNES's own, which is freed (its next
-solve factorises again). Units: residuals in N, dofs in mm, dt dimensionless.
+
+Linear solves: with ``refactor_krylov = 0`` one MUMPS LU factorisation per step; otherwise, as
+in the load ramp, GMRES (right-preconditioned, so it measures the true residual [N]) on the
+step's exact matrix, preconditioned by the factorisation of an earlier step's, which is renewed
+before a step when the previous solve needed more than ``refactor_krylov`` iterations, and at once
+when GMRES does not converge within ``KRYLOV_BUDGET``. Between steps the matrix changes by the new
+tangent and a dt that grows 2-10x, so an old factorisation often still preconditions it well.
+The SNES's own factorisation is freed first (its next solve factorises again): one is held at a
+time. Units: residuals in N, dofs in mm, dt dimensionless.
 """
 
 from __future__ import annotations
@@ -35,15 +42,19 @@ RISE = 2.0
 MIN_GROWTH = 2.0
 GROWTH = 10.0
 SHRINK = 4.0
+KRYLOV_BUDGET = 30  # GMRES iterations on a reused factorisation before refactorising (~2/3 of a factorisation's cost)
 
 
 @dataclass(frozen=True)
 class PseudoTimeStep:
-    """One pseudo-time step: its dt, the residual norm [N] it reached, and whether it was kept."""
+    """One pseudo-time step: its dt, the residual norm [N] it reached, whether it was kept, the
+    GMRES iterations of its linear solve (0 for a direct solve) and whether it factorised."""
 
     dt: float
     residual: float
     accepted: bool
+    krylov_iterations: int = 0
+    factorised: bool = True
 
 
 def pseudo_transient(
@@ -51,13 +62,16 @@ def pseudo_transient(
     atol: float,
     first_step: float | None = None,
     budget: int | None = None,
+    refactor_krylov: int = 0,
+    krylov_rtol: float = 1e-8,
 ) -> tuple[bool, list[PseudoTimeStep]]:
     """Pseudo-transient continuation of ``problem`` (its SNES's residual and tangent, Dirichlet
     conditions included) from the current state of its solution function to a residual norm
     below ``atol`` [N] (module doc; not relative to the start's, which is large and arbitrary).
     Collective; every rank gets the same result. ``first_step`` and ``budget`` default to
-    ``FIRST_STEP`` and ``BUDGET``. Returns (converged, the steps); the state is the last
-    accepted one."""
+    ``FIRST_STEP`` and ``BUDGET``; ``refactor_krylov`` and ``krylov_rtol`` as in
+    :class:`skinfem.config.SolverConfig` (0: a factorisation per step). Returns (converged, the
+    steps); the state is the last accepted one."""
     first_step = FIRST_STEP if first_step is None else first_step
     budget = BUDGET if budget is None else budget
     snes, x, residual, tangent = problem.solver, problem.x, problem.b, problem.A
@@ -69,12 +83,9 @@ def pseudo_transient(
     damping = tangent.getDiagonal()
     damping.abs()
     shift, du, previous = damping.duplicate(), x.duplicate(), x.duplicate()
-    ksp = PETSc.KSP().create(x.comm)
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("mumps")
+    ksp = _linear_solver(x.comm, refactor_krylov, krylov_rtol, 0.1 * atol)
     norm = residual.norm()
-    dt, steps = first_step, []
+    dt, steps, stale = first_step, [], True
     try:
         while norm >= atol and len(steps) < budget and np.isfinite(norm):
             if steps:
@@ -82,14 +93,14 @@ def pseudo_transient(
             damping.copy(shift)
             shift.scale(1.0 / dt)
             tangent.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
-            ksp.setOperators(tangent)
-            ksp.solve(residual, du)
+            krylov, factorised = _solve(ksp, tangent, residual, du, stale)
+            stale = refactor_krylov == 0 or krylov > refactor_krylov
             x.copy(previous)
             x.axpy(-1.0, du)
             snes.computeFunction(x, residual)
             new = residual.norm()
             accepted = bool(np.isfinite(new) and new <= RISE * norm)
-            steps.append(PseudoTimeStep(dt, float(new), accepted))
+            steps.append(PseudoTimeStep(dt, float(new), accepted, krylov, factorised))
             if accepted:
                 dt *= min(GROWTH, max(MIN_GROWTH, 2.0 * norm / new))
                 norm = new
@@ -104,3 +115,33 @@ def pseudo_transient(
             v.destroy()
         ksp.destroy()
     return bool(norm < atol), steps
+
+
+def _linear_solver(comm, refactor_krylov: int, krylov_rtol: float, krylov_atol: float) -> PETSc.KSP:
+    """MUMPS LU alone (``refactor_krylov = 0``) or as GMRES's right preconditioner (module doc)."""
+    ksp = PETSc.KSP().create(comm)
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("mumps")
+    if refactor_krylov == 0:
+        ksp.setType("preonly")
+    else:
+        ksp.setType("gmres")
+        ksp.setPCSide(PETSc.PC.Side.RIGHT)
+        ksp.setGMRESRestart(KRYLOV_BUDGET)
+        ksp.setTolerances(rtol=krylov_rtol, atol=krylov_atol, max_it=KRYLOV_BUDGET)
+    return ksp
+
+
+def _solve(ksp: PETSc.KSP, matrix: PETSc.Mat, rhs: PETSc.Vec, solution: PETSc.Vec, refactor: bool) -> tuple[int, bool]:
+    """Solve ``matrix`` solution = rhs, factorising ``matrix`` if ``refactor`` or if GMRES on
+    the kept factorisation does not converge. Returns (GMRES iterations of the last attempt,
+    whether it factorised)."""
+    ksp.setOperators(matrix)
+    ksp.getPC().setReusePreconditioner(not refactor)
+    ksp.solve(rhs, solution)
+    if not refactor and ksp.getConvergedReason() < 0:
+        ksp.getPC().setReusePreconditioner(False)
+        ksp.solve(rhs, solution)
+        refactor = True
+    its = ksp.getIterationNumber() if ksp.getType() != "preonly" else 0
+    return its, refactor

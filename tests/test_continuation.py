@@ -235,7 +235,7 @@ def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, 
     f_fine = fine(x)
     assert fine.continued == 0
     message = "design (-0.05, 0.05): Newton from another mesh's fields did not converge (Newton–LU 1 its ("
-    assert message in caplog.text and "N), pseudo-time 1 steps (to " in caplog.text
+    assert message in caplog.text and "N), pseudo-time 1 steps, 1 factorisations (to " in caplog.text
     # the record counts the failed solve's two factorisations and the ramp's
     assert [r.continued for r in fine.transferred_runs] == [False, False]
     assert all(r.factorizations > 2 for r in fine.transferred_runs)
@@ -265,8 +265,36 @@ def test_pseudo_time_reaches_the_ramped_equilibrium_where_newton_fails(small_mod
     np.testing.assert_allclose(small_model.u.x.array, ramped, atol=1e-8 * np.abs(ramped).max())
     (solve,) = small_model.far_starts
     assert solve.converged and solve.newton_iterations == 4 and solve.pseudo_time
-    # the factorisations: Newton's four, then one per pseudo-time step
-    assert small_model.factorizations == 4 + len(solve.pseudo_time)
+    # the factorisations: Newton's four, then those of the pseudo-time steps that renewed it
+    assert small_model.factorizations == 4 + sum(step.factorised for step in solve.pseudo_time)
+
+
+def test_pseudo_time_on_a_kept_factorisation_reaches_the_same_equilibrium_with_fewer(small_config, mesh_dir):
+    """Pseudo-time steps solved by GMRES on an earlier step's factorisation (the default,
+    ``solver.refactor_krylov`` 10) reach the ramped equilibrium as the steps factorised one by
+    one (``refactor_krylov`` 0) do, in the same number of steps, with fewer factorisations; a
+    step on a kept factorisation took at most ``KRYLOV_BUDGET`` GMRES iterations."""
+    from skinfem.model import Factorisation, SkinModel
+    from skinfem.params import Design, SkinParams
+    from skinfem.pseudo_time import KRYLOV_BUDGET
+
+    params, design = SkinParams.from_array(TRUTH), Design(0.125, -0.125)
+    solves = {}
+    for refactor in (0, 10):
+        model = SkinModel(small_config.with_changes(solver={"refactor_krylov": refactor}), mesh_dir=mesh_dir)
+        model.simulate(params, design)
+        ramped = model.u.x.array.copy()
+        zero = [(1.0, np.zeros_like(ramped))]
+        assert model.solve_frames(params, design, zero, max_iterations=4, factorisation=Factorisation.EVERY_STEP)
+        np.testing.assert_allclose(model.u.x.array, ramped, atol=1e-8 * np.abs(ramped).max())
+        (solves[refactor],) = model.far_starts
+        assert model.factorizations == solves[refactor].newton_iterations + sum(
+            step.factorised for step in solves[refactor].pseudo_time
+        )
+    each, kept = solves[0].pseudo_time, solves[10].pseudo_time
+    assert all(step.factorised for step in each) and len(kept) == len(each)
+    assert 0 < sum(step.factorised for step in kept) < len(kept) / 2
+    assert all(0 < step.krylov_iterations <= KRYLOV_BUDGET for step in kept if not step.factorised)
 
 
 def test_a_stalled_newton_from_a_far_start_is_given_up_after_one_stretch(small_model, monkeypatch):
@@ -319,9 +347,10 @@ def test_a_far_start_describes_itself_in_one_line_without_a_nan():
     from skinfem.model import FarStart
     from skinfem.pseudo_time import PseudoTimeStep
 
-    steps = (PseudoTimeStep(10.0, 2e-3, True), PseudoTimeStep(100.0, 9e-3, False))
+    steps = (PseudoTimeStep(10.0, 2e-3, True, 0, True), PseudoTimeStep(100.0, 9e-3, False, 4, False))
     assert FarStart(False, 3, (0.0145, 0.0081), steps).describe() == (
-        "Newton–LU 3 its (0.0145 -> 0.0081 N), pseudo-time 2 steps (to 0.002 N)"
+        "Newton–LU 3 its (0.0145 -> 0.0081 N), pseudo-time 2 steps, 1 factorisations (to 0.002 N)"
     )
-    assert FarStart(False, 1, (0.0145, 0.012), steps[1:]).describe().endswith("pseudo-time 1 steps (none kept)")
+    described = FarStart(False, 1, (0.0145, 0.012), steps[1:]).describe()
+    assert described.endswith("pseudo-time 1 steps, 0 factorisations (none kept)")
     assert FarStart(True, 5, (0.0145, 1e-11)).describe() == "Newton–LU 5 its (0.0145 -> 1e-11 N)"
