@@ -1,38 +1,39 @@
-"""Cost of solving an equilibrium from a start far from it, by first pseudo-time step.
+"""Cost of solving an equilibrium from a start far from it, by pseudo-time setting.
 
     python benchmarks/far_start.py [--config small] [--loads 0.1 0.125 0.15 0.175 0.2]
                                    [--first-steps 1 3 10] [--min-growths 2 4] [--refactor-krylov 10]
                                    [--out benchmarks/results/far_start.json]
-    python benchmarks/far_start.py --transfer [--first-steps 10] [--min-growths 2] [--refactor-krylov 10]
+    python benchmarks/far_start.py --transfer [--designs 0.05,0.05 0.05,-0.05] [--refactor-krylov 10]
                                    [--out benchmarks/results/far_start_transfer.json]
 
-A refined run of the discretisation estimate starts from another mesh's fields. Its Newton–LU
-(backtracked, given up once three iterations do not halve the residual) is followed, if it
-stalls, by pseudo-transient continuation from the same start (``SkinModel._solve_far_start``,
-:mod:`skinfem.pseudo_time`). Here the far start is made reproducible and cheap: zero
-displacement at the full load of each design (biaxial (a, a) and mixed (a, -a) for each load a,
-up to four times the paper's), three materials of the box. Per first pseudo-time step
-(``skinfem.pseudo_time.FIRST_STEP``, dimensionless: the shift is the tangent's diagonal / dt):
-the factorisations (Newton's and one per pseudo-time step), the runs that gave up (they fall
-back to a load ramp), seconds, and for runs that converged the largest difference from the
-ramped equilibrium of :meth:`SkinModel.simulate` relative to its largest displacement
-(equilibrium does not depend on the path); and the same per smallest growth of dt after a kept
-step (``--min-growths``, ``skinfem.pseudo_time.MIN_GROWTH``), and per ``--refactor-krylov`` (``solver.refactor_krylov``:
-0 factorises at every pseudo-time step, n > 0 keeps a factorisation as GMRES's preconditioner
-until a solve needs more than n iterations). The residual homotopy this
-replaced was measured on the same starts: ``benchmarks/results/homotopy.json``.
+A refined run of the discretisation estimate starts from another mesh's fields, which it solves
+by pseudo-transient continuation (``SkinModel._solve_far_start``, :mod:`skinfem.pseudo_time`).
+Here the far start is made reproducible and cheap: zero displacement at the full load of each
+design (biaxial (a, a) and mixed (a, -a) for each load a, up to four times the paper's), three
+materials of the box. Per first pseudo-time step (``skinfem.pseudo_time.FIRST_STEP``,
+dimensionless: the shift is the tangent's diagonal / dt), smallest growth of dt after a kept
+step (``--min-growths``, ``skinfem.pseudo_time.MIN_GROWTH``) and ``--refactor-krylov``
+(``solver.refactor_krylov``: 0 factorises at every step, n > 0 keeps a factorisation as
+GMRES's preconditioner until a solve needs more than n iterations): the factorisations, the
+runs that gave up (they fall back to a load ramp), seconds, and for runs that converged the
+largest difference from the ramped equilibrium of :meth:`SkinModel.simulate` relative to its
+largest displacement (equilibrium does not depend on the path). The residual homotopy and the
+Newton–LU that preceded pseudo-time were measured on the same starts:
+``benchmarks/results/homotopy.json``, ``far_start.json`` and ``far_start_reuse.json``.
 ``--transfer``: the refined run that stalled the homotopy, reproduced — the stiffer-muscle seed-4
 check on the quadratic check mesh (``criticism_q2_muscle_seed4_rerun.json``, ``third_rerun``:
 its biaxial design's refined run took 48 factorisations, 1,629 s): the check mesh's equilibrium at
 that check's calibrated baseline, interpolated onto its edge refinement (224k dofs) and solved
-there as a transferred run is (one rank, ~13 minutes, ~10 GB); each ``--refactor-krylov`` is kept
-under its own key of the results file. Recorded, not asserted.
+there as a transferred run is (one rank, ~5 minutes and ~10 GB per design); each design and
+``--refactor-krylov`` is kept under its own key of the results file and not run again.
+Recorded, not asserted.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import time
 from pathlib import Path
@@ -49,7 +50,7 @@ MATERIALS = {  # mu [MPa], k1 [MPa], k2, kappa, theta [deg]
     "soft": (6e-4, 0.01, 5.0, 0.2, 0.0),
     "stiff": (2.4e-3, 0.03, 20.0, 0.1, 60.0),
 }
-CAP = 12  # Newton–LU iterations from a far start, as for a transferred run (inference.forward)
+CAP = 12  # Newton iterations of a later frame, as for a transferred run (inference.forward)
 # the baseline calibrated by the stiffer-muscle seed-4 check (its report); its biaxial design's
 # refined run stalled the residual homotopy
 TRANSFER_PARAMS = (6.04e-4, 0.0117, 8.31, 0.2842, 26.2)
@@ -100,7 +101,6 @@ def run_variant(model, runs_of: list, ramped: list[np.ndarray]) -> dict:
     return {
         "factorizations": sum(r["factorizations"] for r in runs),
         "gave_up": sum(not r["converged"] for r in runs),
-        "newton_converged": sum(r["converged"] and not r["far_start"]["pseudo_time"] for r in runs),
         "seconds": round(sum(r["seconds"] for r in runs), 1),
         "largest_difference_from_ramp": max(r.get("difference_from_ramp", 0.0) for r in runs),
         "runs": runs,
@@ -121,19 +121,14 @@ def transfer_guess(mesh_dir: Path, params: SkinParams, design: Design) -> tuple:
     return coarse, states, time.perf_counter() - start
 
 
-def run_transfer(
-    coarse, states, params: SkinParams, design: Design, refactor_krylov: int, stretch: int, mesh_dir: Path
-) -> dict:
+def run_transfer(coarse, states, params: SkinParams, design: Design, refactor_krylov: int, mesh_dir: Path) -> dict:
     """The transferred refined run of ``--transfer`` (module doc) from ``coarse``'s ``states``,
-    its Newton–LU judged every ``stretch`` iterations (0: pseudo-time only): dofs, seconds,
-    converged, factorisations, the solve's record."""
-    import skinfem.model
+    with ``refactor_krylov``: dofs, seconds, converged, factorisations, the solve's record."""
     import skinfem.pseudo_time
     from inference.criticism.discretisation import refined_config
     from skinfem.continuation import transfer
     from skinfem.model import Factorisation, SkinModel
 
-    skinfem.model.FAR_NEWTON_STRETCH = stretch
     fine_config = refined_config(coarse.config, "edge").with_changes(solver={"refactor_krylov": refactor_krylov})
     fine = SkinModel(fine_config, mesh_dir=mesh_dir)
     guess = transfer(states, coarse.V, fine.V).frames[1.0]
@@ -155,9 +150,9 @@ def run_transfer(
 
 
 def write_transfer(args) -> None:
-    """``--transfer``: the stalled transfer for every design, ``--refactor-krylov`` and
-    ``--newton-stretch``, with the model's pseudo-time settings unless given; a variant already
-    in the results file is not run again."""
+    """``--transfer``: the stalled transfer for every design and ``--refactor-krylov``, with the
+    model's pseudo-time settings unless given; a variant already in the results file is not run
+    again."""
     import skinfem.pseudo_time as pt
     from skinfem.params import Design, SkinParams
 
@@ -170,26 +165,24 @@ def write_transfer(args) -> None:
     for design in (Design(*map(float, d.split(","))) for d in args.designs):
         coarse = None
         for refactor in args.refactor_krylov or [10]:
-            for stretch in args.newton_stretch:
-                name = f"design ({design.alpha11:g}, {design.alpha22:g})"
-                key = f"{name}, refactor_krylov {refactor}, Newton stretch {stretch}"
-                if key in results["variants"]:
-                    continue
-                if coarse is None:
-                    coarse, states, seconds = transfer_guess(args.mesh_dir, params, design)
-                command = (
-                    f"python benchmarks/far_start.py --transfer --first-steps {first_step:g} --min-growths {growth:g}"
-                    f" --designs {design.alpha11:g},{design.alpha22:g} --refactor-krylov {refactor}"
-                    f" --newton-stretch {stretch}"
-                )
-                record = run_transfer(coarse, states, params, design, refactor, stretch, args.mesh_dir)
-                results["variants"][key] = {"command": command, "check_mesh_seconds": round(seconds, 1), **record}
-                print(key, {k: v for k, v in record.items() if k != "far_start"}, flush=True)
-                out.write_text(json.dumps(results, indent=1) + "\n")
+            key = f"design ({design.alpha11:g}, {design.alpha22:g}), refactor_krylov {refactor}"
+            if key in results["variants"]:
+                continue
+            if coarse is None:
+                coarse, states, seconds = transfer_guess(args.mesh_dir, params, design)
+            command = (
+                f"python benchmarks/far_start.py --transfer --first-steps {first_step:g} --min-growths {growth:g}"
+                f" --designs {design.alpha11:g},{design.alpha22:g} --refactor-krylov {refactor}"
+            )
+            record = run_transfer(coarse, states, params, design, refactor, args.mesh_dir)
+            results["variants"][key] = {"command": command, "check_mesh_seconds": round(seconds, 1), **record}
+            print(key, {k: v for k, v in record.items() if k != "far_start"}, flush=True)
+            out.write_text(json.dumps(results, indent=1) + "\n")
 
 
 def write_far_starts(args) -> None:
-    """The 30 far starts on ``args.config`` for every first step and smallest growth."""
+    """The 30 far starts on ``args.config`` for every ``--refactor-krylov``, smallest growth and
+    first step."""
     from skinfem.config import load_config
     from skinfem.model import SkinModel
 
@@ -203,12 +196,11 @@ def write_far_starts(args) -> None:
         for _, params, design in runs_of:
             model.simulate(params, design)
             ramped.append(model.u.x.array.copy())
-        for growth in growths:
-            for dt in first_steps:
-                set_pseudo_time(dt, growth)
-                name = f"first pseudo-time step {dt:g}, growth at least {growth:g}x, refactor_krylov {refactor}"
-                results[name] = result = run_variant(model, runs_of, ramped)
-                print(name, {k: v for k, v in result.items() if k != "runs"}, flush=True)
+        for growth, dt in itertools.product(growths, first_steps):
+            set_pseudo_time(dt, growth)
+            name = f"first pseudo-time step {dt:g}, growth at least {growth:g}x, refactor_krylov {refactor}"
+            results[name] = result = run_variant(model, runs_of, ramped)
+            print(name, {k: v for k, v in result.items() if k != "runs"}, flush=True)
     command = (
         f"python benchmarks/far_start.py --config {args.config} --loads {' '.join(map(str, args.loads))}"
         f" --first-steps {' '.join(map(str, first_steps))} --min-growths {' '.join(map(str, growths))}"
@@ -227,7 +219,6 @@ def main() -> None:
     parser.add_argument("--refactor-krylov", nargs="+", type=int, help="default: the config's (10)")
     parser.add_argument("--transfer", action="store_true", help="the quadratic check mesh's stalled transfer")
     parser.add_argument("--designs", nargs="+", default=["0.05,0.05"], help="--transfer: alpha11,alpha22 each")
-    parser.add_argument("--newton-stretch", nargs="+", type=int, default=[3], help="--transfer; 0: pseudo-time only")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()

@@ -36,15 +36,16 @@ from skinfem.config import PARAM_NAMES, Config
 from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
-from skinfem.model import Factorisation, FarStart
+from skinfem.model import Factorisation
 from skinfem.parallel import collective
+from skinfem.pseudo_time import FarStart
 from skinfem.sensitivity import DisplacementSensitivity
 
 log = logging.getLogger(__name__)
 
 MAX_CUTBACKS = 3  # load-step halvings before an FE run of a check counts as failed
 CONTINUATION_ITERATIONS = 8  # Newton iterations from a nearby point's states before ramping instead
-TRANSFER_ITERATIONS = 12  # Newton–LU from another mesh's states before pseudo-time (the slowest measured: 9)
+TRANSFER_ITERATIONS = 12  # Newton iterations of a later frame from another mesh's states before pseudo-time
 
 
 class ForwardModel:
@@ -113,17 +114,17 @@ class TransferredRun:
 
     design: tuple[float, float]  # (alpha11, alpha22)
     seconds: float
-    factorizations: int  # Newton–LU factorisations of the tangent, a ramp's included
-    continued: bool  # False: Newton did not converge and the load was ramped
+    factorizations: int  # factorisations of the tangent, a ramp's included
+    continued: bool  # False: the far-start solve did not converge and the load was ramped
     far_starts: list[FarStart]  # each equilibrium solved from the interpolated fields
 
 
 def _warn_of_ramp(design, far_starts: list[FarStart]) -> None:
-    """Warn that Newton from another mesh's fields failed and ``design`` is ramped (slow on a
-    fine mesh), with how the solve that failed went (the last of ``far_starts``: every failed
-    transferred solve records one; an earlier one, e.g. the unloaded reference's, converged)."""
+    """Warn that the solve from another mesh's fields failed and ``design`` is ramped (slow on a
+    fine mesh), with how it went (the last of ``far_starts``: every failed transferred solve
+    records one; an earlier one, e.g. the unloaded reference's, converged)."""
     log.warning(
-        "design (%g, %g): Newton from another mesh's fields did not converge (%s); ramping the load",
+        "design (%g, %g): the solve from another mesh's fields did not converge (%s); ramping the load",
         design.alpha11,
         design.alpha22,
         far_starts[-1].describe(),
@@ -216,7 +217,7 @@ class FEForward(ForwardModel):
         self.reused = 0  # simulations read from cache_dir instead of run
         self.continuation = Continuation() if continuation else None
         self.continued = 0  # simulations started from a nearby point's states instead of ramped
-        self.transferred = False  # states come from another mesh (continue_from): solved by Newton–LU
+        self.transferred = False  # states come from another mesh (continue_from): solved by pseudo-time
         self.transferred_runs: list[TransferredRun] = []  # this rank's, in the order run
         self.failures: list[FailedRun] = []
         self.seconds = 0.0
@@ -290,12 +291,12 @@ class FEForward(ForwardModel):
         ``cache_dir``, e.g. in a resumed check) is first solved by ``other`` at ``x``: one run on
         its mesh instead of a ramp on this one.
 
-        Newton is then Newton–LU, up to ``TRANSFER_ITERATIONS`` and followed by pseudo-transient
-        continuation if it stalls (:meth:`skinfem.model.SkinModel.solve_frames`): from another
-        mesh's fields GMRES
-        preconditioned by the first step's factorisation stalls, and Newton needs more steps
-        than from a nearby point's (quadratic check mesh to its edge refinement, mixed design:
-        9), while on a refined mesh a load ramp costs more."""
+        The first frame of a design is then solved by pseudo-transient continuation, later ones
+        by Newton (up to ``TRANSFER_ITERATIONS``) from their guess plus the first frame's
+        correction (:meth:`skinfem.model.SkinModel.solve_frames`): from another mesh's fields
+        Newton stalls or needs many steps (quadratic check mesh to its edge refinement: 3
+        without progress for the biaxial design, 8 for the mixed one), while on a refined mesh
+        a load ramp costs more (benchmarks/results/far_start_transfer.json)."""
         if self.continuation is None or other.continuation is None:
             return
         other._solve_designs_without_states(x)
@@ -320,7 +321,7 @@ class FEForward(ForwardModel):
 
     def _continuation_solver(self) -> tuple[int, Factorisation]:
         """(Newton iterations, first factorisation) of a continued solve before it is ramped:
-        from another mesh's states Newton–LU, then pseudo-time, else from a nearby
+        from another mesh's states pseudo-time first, else from a nearby
         point's states GMRES on the previous factorisation (SkinModel.solve_frames)."""
         if self.transferred:
             return TRANSFER_ITERATIONS, Factorisation.EVERY_STEP

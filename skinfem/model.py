@@ -40,21 +40,11 @@ from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
 from skinfem.params import Design, SkinParams
-from skinfem.pseudo_time import PseudoTimeStep, pseudo_transient
+from skinfem.pseudo_time import FarStart, pseudo_transient
 from skinfem.strain import ObservedCells, SkinStrainSampler, SurfaceStrainSampler, top_skin_cells
 
-# A start far from equilibrium (another mesh's fields) is solved by Newton–LU first, judged every
-# FAR_NEWTON_STRETCH iterations and given up when a stretch did not cut the residual to
-# FAR_NEWTON_CONTRACTION of its start: damped (backtracked, FAR_NEWTON_LINESEARCH) steps that
-# barely reduce it rarely converge within the budget. The slowest transfer measured to converge
-# by Newton alone (quadratic check mesh to its edge refinement, mixed design) cut it to 0.18 in
-# its first three steps and converged in nine (benchmarks/results/refined_estimate.json). Then
-# pseudo-transient continuation from the same start (skinfem.pseudo_time; benchmarks/far_start.py).
-FAR_NEWTON_STRETCH = 3
-FAR_NEWTON_CONTRACTION = 0.5
 DIVERGED_LINE_SEARCH = PETSc.SNES.ConvergedReason.DIVERGED_LINE_SEARCH
 DIVERGED_LINEAR_SOLVE = PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
-FAR_NEWTON_LINESEARCH = "bt"  # Newton from a far start: cp, l2 gave up as often (results/homotopy.json)
 
 
 class Factorisation(IntEnum):
@@ -90,32 +80,6 @@ class StrainFrames:
     newton_iterations: list[int] = field(default_factory=list)
     cutbacks: int = 0
     seconds: float = 0.0
-
-
-@dataclass(frozen=True)
-class FarStart:
-    """One equilibrium solved from a start far from it (:meth:`SkinModel._solve_far_start`):
-    whether it converged, Newton–LU's iterations and residual norms [N] (at the start and after
-    each stretch of ``FAR_NEWTON_STRETCH`` iterations), then, if Newton did not converge, each
-    pseudo-time step from the same start."""
-
-    converged: bool
-    newton_iterations: int
-    newton_residuals: tuple[float, ...]
-    pseudo_time: tuple[PseudoTimeStep, ...] = ()
-
-    def describe(self) -> str:
-        """One line, e.g. "Newton–LU 3 its (0.0145 -> 0.0081 N), pseudo-time 19 steps, 7 factorisations
-        (to 2e-11 N)"."""
-        newton = f"Newton–LU {self.newton_iterations} its"
-        if self.newton_residuals:
-            newton += f" ({self.newton_residuals[0]:.3g} -> {self.newton_residuals[-1]:.3g} N)"
-        if not self.pseudo_time:
-            return newton
-        kept = [step.residual for step in self.pseudo_time if step.accepted]
-        reached = f"to {kept[-1]:.3g} N" if kept else "none kept"
-        factorised = sum(step.factorised for step in self.pseudo_time)
-        return f"{newton}, pseudo-time {len(self.pseudo_time)} steps, {factorised} factorisations ({reached})"
 
 
 @dataclass
@@ -429,56 +393,19 @@ class SkinModel:
             self.u.x.array[:] = start
             policy = Factorisation(policy + 1)
 
-    def _contracting_newton(self) -> tuple[bool, int, tuple[float, ...]]:
-        """Newton–LU towards R(u) = 0 within the SNES iteration budget, run in stretches of
-        ``FAR_NEWTON_STRETCH`` iterations and ended after a stretch whose last residual norm is
-        not below ``FAR_NEWTON_CONTRACTION`` times its first. The relative tolerance stays
-        relative to the first stretch's starting residual. Returns (converged, iterations, the
-        residual norms at the start and after each stretch)."""
-        snes = self.problem.solver
-        rtol, _, _, budget = snes.getTolerances()
-        its, norms = 0, []
-        try:
-            while True:
-                self._set_snes_option("snes_max_it", min(FAR_NEWTON_STRETCH, budget - its))
-                converged, n, _ = self._newton(Factorisation.EVERY_STEP)
-                its += n
-                history = snes.getConvergenceHistory()[0]  # of this stretch
-                if len(history) == 0:  # stopped before any residual norm, e.g. a non-finite start
-                    return False, its, tuple(norms)
-                first, last = float(history[0]), float(history[-1])
-                norms += [first, last] if not norms else [last]
-                if converged or its >= budget or not last < FAR_NEWTON_CONTRACTION * first:
-                    return converged, its, tuple(norms)
-                self._set_snes_option("snes_rtol", rtol * norms[0] / last)
-        finally:
-            self._set_snes_option("snes_rtol", rtol)
-            self._set_snes_option("snes_max_it", budget)
-
     def _solve_far_start(self) -> bool:
-        """Equilibrium from a current state far from it (e.g. another mesh's fields): Newton–LU,
-        backtracked (PETSc's ``bt`` line search: from another mesh's fields a full step can
-        invert cells) and given up as soon as it stalls (:meth:`_contracting_newton`), then
-        pseudo-transient continuation from the same state (:mod:`skinfem.pseudo_time`), whose
-        states descend the energy where those of a residual homotopy pass through saddle points
-        (docs/criticism.md §3). Records a :class:`FarStart`; returns whether it converged
-        (the state is then the equilibrium, else undefined)."""
-        start = self.u.x.array.copy()
-        self._set_snes_option("snes_linesearch_type", FAR_NEWTON_LINESEARCH)
-        try:
-            converged, its, norms = self._contracting_newton()
-        finally:
-            self._set_snes_option("snes_linesearch_type", "basic")
-        steps = []
-        if not converged:
-            self.u.x.array[:] = start
-            solver = self.config.solver
-            converged, steps = pseudo_transient(
-                self.problem, solver.atol, refactor_krylov=solver.refactor_krylov, krylov_rtol=solver.krylov_rtol
-            )
-            self.factorizations += sum(step.factorised for step in steps)
-        self.far_starts.append(FarStart(converged, its, norms, tuple(steps)))
-        return converged
+        """Equilibrium from a current state far from it (e.g. another mesh's fields) by
+        pseudo-transient continuation (:mod:`skinfem.pseudo_time`), whose states descend the
+        energy where those of a residual homotopy pass through saddle points and where Newton
+        stalls (docs/criticism.md §3). Records a :class:`~skinfem.pseudo_time.FarStart`;
+        returns whether it converged (the state is then the equilibrium, else undefined)."""
+        solver = self.config.solver
+        solve = pseudo_transient(
+            self.problem, solver.atol, refactor_krylov=solver.refactor_krylov, krylov_rtol=solver.krylov_rtol
+        )
+        self.factorizations += solve.factorisations
+        self.far_starts.append(solve)
+        return solve.converged
 
     def load_fractions(self) -> np.ndarray:
         n = self.config.solver.increments
@@ -601,17 +528,16 @@ class SkinModel:
         pre-stressed model (zero if None).
 
         ``factorisation`` is the first attempt's policy: ``REUSE`` (the previous solve's
-        factorisation preconditions GMRES) for guesses from nearby parameters, ``EVERY_STEP``
-        (Newton–LU) for guesses far from equilibrium, such as another mesh's fields, where GMRES
-        with a factorisation from the first step stalls. A failed ``REUSE`` attempt is retried
-        once with a fresh factorisation, not escalated to Newton–LU (up to ``max_iterations``
-        factorisations): that is left to the load ramp the caller falls back to. A failed
-        ``EVERY_STEP`` attempt continues by pseudo-transient continuation from the same guess
-        (:meth:`_solve_far_start`), cheaper than a ramp on a fine mesh. The correction Newton
-        made to one frame's guess is added to the next frame's guess (the guesses share their
-        error, e.g. another mesh's interpolation), so with ``EVERY_STEP`` only the first frame
-        is solved by Newton–LU: later frames take GMRES on a fresh factorisation, escalated and
-        then the far-start solve if that fails.
+        factorisation preconditions GMRES) for guesses from nearby parameters; ``EVERY_STEP``
+        marks guesses far from equilibrium, such as another mesh's fields, where Newton stalls:
+        the first frame (and the unloaded reference) is then solved by pseudo-transient
+        continuation (:meth:`_solve_far_start`), cheaper than a ramp on a fine mesh. A failed
+        ``REUSE`` attempt is retried once with a fresh factorisation, not escalated to Newton–LU
+        (up to ``max_iterations`` factorisations): that is left to the load ramp the caller
+        falls back to. The correction made to one frame's guess is added to the next frame's
+        guess (the guesses share their error, e.g. another mesh's interpolation), so with
+        ``EVERY_STEP`` later frames take Newton with GMRES on a fresh factorisation, escalated
+        up to Newton–LU and then the far-start solve if that fails.
 
         Equilibrium does not depend on the load path, so where it is unique the states equal
         :meth:`simulate`'s to the Newton tolerance. The factorisation of the previous solve
@@ -619,7 +545,7 @@ class SkinModel:
         :meth:`simulate`.
 
         Returns:
-            False as soon as a Newton solve fails within ``max_iterations`` (the state is then
+            False as soon as a solve fails (Newton within ``max_iterations``; the state is then
             undefined: ramp with :meth:`simulate`), True when every frame converged.
 
         (Over 60 lines only by this docstring: the code is one loop over the frames.)
@@ -655,7 +581,7 @@ class SkinModel:
                 correction = self.u.x.array - guess
                 stale = krylov > self.config.solver.refactor_krylov
                 fresh = Factorisation.FIRST_STEP if stale else Factorisation.REUSE
-                policy = max(min(factorisation, Factorisation.FIRST_STEP), fresh)  # Newton–LU only at the first frame
+                policy = max(min(factorisation, Factorisation.FIRST_STEP), fresh)  # far start: the first frame only
                 if on_frame is not None:
                     on_frame(float(t))
             return True
