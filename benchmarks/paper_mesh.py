@@ -14,6 +14,15 @@
         --run "paper mesh, 256 cells=out/paper_noise_256" \
         --run "study mesh=benchmarks/results/noise_study"
     python benchmarks/paper_mesh.py coverage --study out/paper_noise
+    # 5. the "max" design (0.05, 0.05), another of the paper's single observations (~48 min, 2 cores),
+    #    the clean case and white noise 1 % and 10 %, side by side with the mixed design
+    mpirun -n 2 skinid sweep --config benchmarks/configs/paper_max.toml --out out/paper_max.h5
+    skinid study noise --data out/paper_max.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
+        --levels 0.01 0.1 --out out/paper_max_noise
+    python benchmarks/paper_mesh.py table --run "max design=out/paper_max_noise" \
+        --run "mixed design=benchmarks/results/paper_mesh/noise_paper_mesh" --results benchmarks/results/paper_mesh_max
+    python benchmarks/paper_mesh.py coverage --study out/paper_max_noise --results benchmarks/results/paper_mesh_max
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
