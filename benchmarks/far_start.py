@@ -154,6 +154,7 @@ def write_transfer(args) -> None:
     model's pseudo-time settings unless given; a variant already in the results file is not run
     again."""
     import skinfem.pseudo_time as pt
+    from skinfem.config import load_config
     from skinfem.params import Design, SkinParams
 
     first_step = (args.first_steps or [pt.FIRST_STEP])[0]
@@ -162,9 +163,10 @@ def write_transfer(args) -> None:
     out = args.out or HERE / "results" / "far_start_transfer.json"
     results = json.loads(out.read_text()) if out.exists() else {"variants": {}}
     params = SkinParams.from_array(np.array(TRANSFER_PARAMS))
+    refactors = args.refactor_krylov or [load_config("check").solver.refactor_krylov]
     for design in (Design(*map(float, d.split(","))) for d in args.designs):
         coarse = None
-        for refactor in args.refactor_krylov or [10]:
+        for refactor in refactors:
             key = f"design ({design.alpha11:g}, {design.alpha22:g}), refactor_krylov {refactor}"
             if key in results["variants"]:
                 continue
