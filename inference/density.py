@@ -39,11 +39,14 @@ class FusedLogDensity:
         self.y_mean, self.y_std = bank.y_mean.cpu().numpy(), bank.y_std.cpu().numpy()
         self.scaled_train = bank.scaled_train.cpu().numpy()  # (G, n, d) x_train / l
         self.scaled_train_sq = bank.scaled_train_sq.cpu().numpy()  # (G, n)
+        self.scaled_train_t = np.ascontiguousarray(self.scaled_train.transpose(0, 2, 1))  # (G, d, n)
         if posterior.gp_variance != "mode":
             raise ValueError("the closed form covers gp_variance='mode'; 'exact' uses autograd")
         self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
         self.lower, self.span = posterior.lower.numpy(), posterior.span.numpy()
         self.design = posterior.design_inputs.numpy()
+        self.design_unit = (self.design - self.in_lower[5:]) / self.in_span[5:]  # (n_obs, 2)
+        self.param_scale = self.span / self.in_span[:5]  # d(unit input) / dz
         # W (G, n_obs, n_obs), e (n_obs, G), log det of the known noise (0 with HalfCauchy noise)
         self.rotation, self.fixed_var, self.log_det_noise = posterior.fixed_eigen()
         self.weights = self.rotate(posterior.weights.numpy())
@@ -63,9 +66,8 @@ class FusedLogDensity:
     def gp_mean(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """GP mean (n_obs, G) and its gradient (n_obs, G, 7) at unit inputs x (n_obs, 7)."""
         a = x[None] / self.length_scale[:, None]  # (G, n_obs, d), as in GPBank
-        sq = (a**2).sum(-1)[..., None] + self.scaled_train_sq[:, None] - 2 * a @ self.scaled_train.transpose(0, 2, 1)
-        k = self.constant[:, None, None] * np.exp(-0.5 * np.maximum(sq, 0.0))  # (G, n_obs, n)
-        beta = k * self.alpha[:, None]
+        sq = (a**2).sum(-1)[..., None] + self.scaled_train_sq[:, None] - 2 * a @ self.scaled_train_t
+        beta = np.exp(-0.5 * np.maximum(sq, 0.0)) * (self.constant[:, None] * self.alpha)[:, None]  # (G, n_obs, n)
         s0 = beta.sum(-1)
         s1 = beta @ self.x_train  # (G, n_obs, d)
         mean = (s0 * self.y_std[:, None] + self.y_mean[:, None]).T
@@ -75,9 +77,8 @@ class FusedLogDensity:
     def __call__(self, u: np.ndarray) -> tuple[float, np.ndarray]:
         """(log density, gradient (dim,)) at the unconstrained vector u."""
         z = 1.0 / (1.0 + np.exp(-u[:5]))
-        params = self.lower + z * self.span
-        x = np.column_stack([np.tile(params, (len(self.design), 1)), self.design])
-        x = (x - self.in_lower) / self.in_span
+        unit = (self.lower + z * self.span - self.in_lower[:5]) / self.in_span[:5]
+        x = np.concatenate([np.broadcast_to(unit, (len(self.design_unit), 5)), self.design_unit], axis=1)
         mean, dmean = self.gp_mean(x)
         mean, dmean = self.rotate(mean), self.rotate(dmean)
         sigma = np.exp(u[5 : 5 + self.n_sigma])
@@ -89,7 +90,7 @@ class FusedLogDensity:
         dx = np.einsum("og,ogd->d", d_mean, dmean)
         grad = np.zeros_like(u)
         dz = z * (1 - z)
-        grad[:5] = dx[:5] * self.span / self.in_span[:5] * dz + (1 - 2 * z)
+        grad[:5] = dx[:5] * self.param_scale * dz + (1 - 2 * z)
         # uniform prior -sum log span + Jacobian sum log(span z (1 - z)): the spans cancel
         value = loglik - np.sum(np.logaddexp(0, -u[:5]) + np.logaddexp(0, u[:5]))
         if self.halfcauchy:
@@ -113,16 +114,18 @@ class FusedLogDensity:
         if self.shift is None:
             loglik = -0.5 * np.sum(r**2 / total + np.log(2 * np.pi * total))
             return loglik, r / total, 0.5 * (r**2 / total**2 - 1 / total), 0.0
-        d, rr, shift = total.ravel(), r.ravel(), self.shift
-        m = np.sqrt(scale) * shift / d[:, None]  # D^-1 U
-        capacitance = np.eye(5) + scale * shift.T @ (shift / d[:, None])
-        capacitance_inv = np.linalg.inv(capacitance)
-        v = rr / d - m @ (capacitance_inv @ (np.sqrt(scale) * shift.T @ (rr / d)))  # Sigma^-1 r
-        log_det = np.sum(np.log(d)) + np.linalg.slogdet(capacitance)[1]
+        d, rr, shift = total.ravel(), r.ravel(), self.shift  # Sigma = D + scale U U^T
+        scaled = shift / d[:, None]  # D^-1 U (N, 5)
+        inner = shift.T @ scaled  # U^T D^-1 U (5, 5)
+        capacitance_inv = np.linalg.inv(np.eye(5) + scale * inner)
+        projected = scaled @ capacitance_inv  # D^-1 U C^-1
+        v = rr / d - scale * projected @ (scaled.T @ rr)  # Sigma^-1 r
+        log_det = np.sum(np.log(d)) - np.linalg.slogdet(capacitance_inv)[1]
         loglik = -0.5 * (rr @ v + log_det + rr.size * np.log(2 * np.pi))
-        inv_diag = 1 / d - np.sum((m @ capacitance_inv) * m, axis=1)  # diag Sigma^-1
-        inv_shift = shift / d[:, None] - m @ (capacitance_inv @ (np.sqrt(scale) * shift.T @ (shift / d[:, None])))
-        d_shared = 0.5 * (np.sum((shift.T @ v) ** 2) - np.sum(shift * inv_shift))
+        inv_diag = 1 / d - scale * np.sum(projected * scaled, axis=1)  # diag Sigma^-1
+        # sum(U * Sigma^-1 U) = tr(U^T D^-1 U) - scale tr(U^T D^-1 U C^-1 U^T D^-1 U)
+        trace = np.trace(inner) - scale * np.sum((inner @ capacitance_inv) * inner)
+        d_shared = 0.5 * (np.sum((shift.T @ v) ** 2) - trace)
         return loglik, v.reshape(r.shape), 0.5 * (v**2 - inv_diag).reshape(r.shape), d_shared
 
 

@@ -1,7 +1,8 @@
 """NUTS sampling of a :class:`~inference.model.SkinPosterior`, diagnostics and outputs.
 
 Chains run in parallel worker processes (``spawn``), one torch thread each (torch's default
-intra-op threading makes these tiny operations several times slower). Each chain starts near
+intra-op threading makes these tiny operations several times slower); the processes start
+before the mode is found, so that their imports overlap with it. Each chain starts near
 the posterior mode (found by L-BFGS from several seeded starts) with a seeded jitter and with
 the Laplace covariance there (inverse Hessian of the potential) as its initial inverse mass
 matrix, adapts its step size and a dense mass matrix during warm-up, and returns its draws in
@@ -35,6 +36,7 @@ from dataclasses import asdict, dataclass, fields
 from functools import partial
 from importlib import metadata
 from pathlib import Path
+from queue import Empty
 from typing import ClassVar
 
 import numpy as np
@@ -175,8 +177,8 @@ class _ChainRecorder:
     NUTS gets (it counts the calls: one per leapfrog step), :meth:`hook` is MCMC's ``hook_fn``
     (called after every warm-up and sampling iteration with the kernel and the new draw)."""
 
-    def __init__(self, potential_fn, init: torch.Tensor, queue=None, chain: int = 0):
-        self.potential_fn, self.previous, self.queue, self.chain = potential_fn, init, queue, chain
+    def __init__(self, potential_fn, init: torch.Tensor):
+        self.potential_fn, self.previous, self.queue = potential_fn, init, _PROGRESS
         self.calls = self.calls_seen = 0
         self.n_steps, self.step_size, self.moved = [], [], []
 
@@ -191,8 +193,13 @@ class _ChainRecorder:
         u = samples["u"].detach()
         self.moved.append(not torch.equal(u, self.previous))
         self.previous = u.clone()
-        if self.queue is not None and (i + 1) % 50 == 0:
-            self.queue.put((self.chain, 50))
+        if self.queue is not None and len(self.n_steps) % PROGRESS_EVERY == 0:
+            self.queue.put(PROGRESS_EVERY)
+
+    def report_rest(self) -> None:
+        """Report the iterations since the last report (the chain has ended)."""
+        if self.queue is not None and len(self.n_steps) % PROGRESS_EVERY:
+            self.queue.put(len(self.n_steps) % PROGRESS_EVERY)
 
     def statistics(self, draws: int) -> dict[str, np.ndarray]:
         """(draws,) per statistic of the last ``draws`` iterations (the sampling phase).
@@ -257,8 +264,6 @@ def _run_chain(
     draws: int,
     seed: int,
     target_accept: float,
-    queue=None,
-    chain: int = 0,
 ) -> ChainResult:
     from pyro.infer import MCMC
 
@@ -266,7 +271,7 @@ def _run_chain(
     torch.manual_seed(seed)
     start = time.perf_counter()
     init = torch.as_tensor(init)
-    recorder = _ChainRecorder(posterior.potential, init, queue, chain)
+    recorder = _ChainRecorder(posterior.potential, init)
     kernel = _nuts_kernel(posterior, inverse_mass, recorder.potential, target_accept=target_accept)
     mcmc = MCMC(
         kernel,
@@ -278,6 +283,7 @@ def _run_chain(
     )
     with quiet_overflow():
         mcmc.run()
+    recorder.report_rest()
     u = mcmc.get_samples()["u"]
     with torch.no_grad():
         values = posterior.constrain(u).numpy()
@@ -686,6 +692,42 @@ class PosteriorSamples:
         return messages
 
 
+_PROGRESS = None  # in a chain process: the queue its chains report their iterations to
+PROGRESS_EVERY = 50  # iterations between two reports
+
+
+def _start_worker(progress) -> None:
+    """Initializer of a chain process: keep the progress queue and import what a chain needs
+    now, while the parent process finds the mode, not when the first chain arrives."""
+    global _PROGRESS
+    _PROGRESS = progress
+    torch.set_num_threads(1)
+    import pyro.infer  # noqa: F401
+
+
+@dataclass
+class _ChainWorkers:
+    """Spawned chain processes and their progress queue (None: the chains run in this process)."""
+
+    pool: ProcessPoolExecutor | None = None
+    progress: object = None
+
+
+@contextlib.contextmanager
+def _chain_workers(n_jobs: int):
+    """Start ``n_jobs`` chain processes at once (each imports torch and Pyro) and yield
+    them as :class:`_ChainWorkers`; shut them down on exit."""
+    if n_jobs == 1:
+        yield _ChainWorkers()
+        return
+    ctx = mp.get_context("spawn")
+    progress = ctx.Queue()
+    with ProcessPoolExecutor(n_jobs, mp_context=ctx, initializer=_start_worker, initargs=(progress,)) as pool:
+        for _ in range(n_jobs):
+            pool.submit(int)  # a no-op task per worker spawns it now
+        yield _ChainWorkers(pool, progress)
+
+
 def _run_chains(
     posterior: SkinPosterior,
     inits: list[np.ndarray],
@@ -693,41 +735,46 @@ def _run_chains(
     warmup: int,
     draws: int,
     seeds: list[int],
-    n_jobs: int,
+    workers: _ChainWorkers,
     bar,
     target_accept: float,
 ) -> list[ChainResult]:
-    """One chain per start in ``inits``, ``n_jobs`` at a time (spawned processes when > 1),
+    """One chain per start in ``inits`` on ``workers`` (in this process when it has none),
     advancing the progress ``bar`` (or None) as they go."""
-    if n_jobs == 1:
+    if workers.pool is None:
         results = []
         for c in range(len(inits)):
             results.append(_run_chain(posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept))
             if bar is not None:
                 bar.update(warmup + draws)
         return results
-    ctx = mp.get_context("spawn")
-    with ctx.Manager() as manager, ProcessPoolExecutor(n_jobs, mp_context=ctx) as pool:
-        queue = manager.Queue()  # (chain, iterations) every 50 iterations of a chain
-        futures = [
-            pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept, queue, c)
-            for c in range(len(inits))
-        ]
-        pending = futures
-        while pending:
-            done, pending = wait(pending, timeout=0.2, return_when=FIRST_EXCEPTION)
-            _advance(bar, queue)
-            error = next((f.exception() for f in done if f.exception() is not None), None)
-            if error is not None:
-                pool.shutdown(cancel_futures=True)  # drop the chains not started yet
-                raise error
-        return [f.result() for f in futures]
+    pool = workers.pool
+    futures = [
+        pool.submit(_run_chain, posterior, inits[c], inverse_mass, warmup, draws, seeds[c], target_accept)
+        for c in range(len(inits))
+    ]
+    pending, reported = futures, 0
+    while pending:
+        done, pending = wait(pending, timeout=0.2, return_when=FIRST_EXCEPTION)
+        reported += _advance(bar, workers.progress)
+        error = next((f.exception() for f in done if f.exception() is not None), None)
+        if error is not None:
+            pool.shutdown(cancel_futures=True)  # drop the chains not started yet
+            raise error
+    _advance(bar, workers.progress, len(inits) * (warmup + draws) - reported)  # reports still on their way
+    return [f.result() for f in futures]
 
 
-def _advance(bar, queue) -> None:
-    """Advance ``bar`` (or None) by the iterations the chains reported to ``queue`` so far."""
-    while not queue.empty():
-        _, n = queue.get()
+def _advance(bar, queue, wait_for: int = 0, timeout: float = 10.0) -> int:
+    """Advance ``bar`` (or None) by the iterations reported to ``queue`` so far, waiting up to
+    ``timeout`` s for each report until ``wait_for`` iterations are read; return the count read."""
+    read = 0
+    while True:
+        try:
+            n = queue.get(timeout=timeout) if read < wait_for else queue.get_nowait()
+        except Empty:
+            return read
+        read += n
         if bar is not None:
             bar.update(n)
 
@@ -747,28 +794,28 @@ def sample_posterior(
     ``target_accept``; when more than RESAMPLE_SHARE of their transitions diverge (and
     ``resample``), run them again at RESAMPLE_ACCEPT."""
     start = time.perf_counter()
-    mode = prepare(posterior, seed=seed)
-    inverse_mass = laplace_inverse_mass(posterior, mode)
-    rng = np.random.default_rng(seed)
-    inits = [mode + rng.normal(0, 0.1, size=mode.shape) for _ in range(chains)]
-    seeds = [seed * 1000 + c for c in range(chains)]
-    n_jobs = max(1, min(n_jobs, chains))
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    with _chain_workers(max(1, min(n_jobs, chains))) as workers:  # they start while the mode is found
+        mode = prepare(posterior, seed=seed)
+        inverse_mass = laplace_inverse_mass(posterior, mode)
+        rng = np.random.default_rng(seed)
+        inits = [mode + rng.normal(0, 0.1, size=mode.shape) for _ in range(chains)]
+        seeds = [seed * 1000 + c for c in range(chains)]
+        bar = None
+        if progress:
+            from tqdm import tqdm
 
-        bar = tqdm(total=chains * (warmup + draws), desc="NUTS", unit="it", file=sys.stderr)
-    run = partial(_run_chains, posterior, inits, inverse_mass, warmup, draws, seeds, n_jobs, bar)
-    first_target_accept, diverged_before = target_accept, None
-    results = run(target_accept)
-    diverged = sum(int(r.diverging.sum()) for r in results)
-    if resample and target_accept < RESAMPLE_ACCEPT and diverged > RESAMPLE_SHARE * chains * draws:
-        if bar is not None:
-            bar.total += chains * (warmup + draws)
-        target_accept, diverged_before = RESAMPLE_ACCEPT, diverged
+            bar = tqdm(total=chains * (warmup + draws), desc="NUTS", unit="it", file=sys.stderr)
+        run = partial(_run_chains, posterior, inits, inverse_mass, warmup, draws, seeds, workers, bar)
+        first_target_accept, diverged_before = target_accept, None
         results = run(target_accept)
-    if bar is not None:
-        bar.close()
+        diverged = sum(int(r.diverging.sum()) for r in results)
+        if resample and target_accept < RESAMPLE_ACCEPT and diverged > RESAMPLE_SHARE * chains * draws:
+            if bar is not None:
+                bar.total += chains * (warmup + draws)
+            target_accept, diverged_before = RESAMPLE_ACCEPT, diverged
+            results = run(target_accept)
+        if bar is not None:
+            bar.close()
     samples = PosteriorSamples(
         names=posterior.names,
         draws=np.stack([r.draws for r in results]),
