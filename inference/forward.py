@@ -409,10 +409,6 @@ class FEForward(ForwardModel):
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
         return [None if f is None else f[..., 0] for f in self._evaluate(points, ())]
 
-    def derivative_factorisations(self) -> int:
-        """LU factorisations the exact derivatives took so far, over every rank (collective)."""
-        return self.comm.allreduce(self.sensitivity.factorisations)
-
     def evaluate_with_jacobian(
         self, points: Sequence[np.ndarray], names: Sequence[str]
     ) -> list[tuple[np.ndarray, np.ndarray] | None]:

@@ -11,13 +11,9 @@ with respect to u (``ufl.derivative``), so the forms are exact and compiled once
 angle theta [deg] enters through a0 = (cos theta, sin theta, 0): its derivative is the
 directional derivative along da0/dtheta = (-sin theta, cos theta, 0) pi/180.
 
-One tangent assembly serves all parameters of a state; each parameter costs one assembly of
-dR/dp and one linear solve, instead of one full nonlinear simulation per parameter for a finite
-difference. The solves run on a kept factorisation (:mod:`skinfem.krylov`): GMRES on the exact
-tangent, preconditioned by the LU factorisation of an earlier state's tangent (the previous
-frame, or the previous calibration point: nearby equilibria), renewed when a state's solves
-needed more than ``solver.refactor_krylov`` iterations (0: a factorisation per state, the
-direct solve). Counted in :attr:`DisplacementSensitivity.factorisations`.
+One tangent assembly and one LU factorisation serve all parameters of a state; each
+parameter costs one assembly of dR/dp and one pair of triangular solves, instead of one full
+nonlinear simulation per parameter for a finite difference.
 """
 
 from __future__ import annotations
@@ -29,12 +25,6 @@ import numpy as np
 
 from skinfem.config import PARAM_NAMES
 from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
-from skinfem.krylov import kept_factorisation_solver, solve
-
-# GMRES stops at this residual relative to ||dR/dp||: tighter than the Newton steps' krylov_rtol,
-# since the tangent's 10^7 stiffness contrast can amplify a residual into the derivative;
-# tests/test_sensitivity.py compares with direct solves
-SENSITIVITY_RTOL = 1e-10
 
 
 def energy_derivative(energy: ufl.Form, constant, direction=None) -> ufl.Form:
@@ -67,13 +57,12 @@ class DisplacementSensitivity:
         self._constants.update(model.effect_constants)
         self._forms: dict[str, dolfinx.fem.Form] = {}
         self._K = dolfinx.fem.petsc.create_matrix(model.problem.J)
-        solver = model.config.solver
-        self._refactor_krylov = solver.refactor_krylov
-        self._ksp = kept_factorisation_solver(mesh.comm, solver.refactor_krylov, SENSITIVITY_RTOL, 0.0)
-        self._stale = True  # no factorisation yet
+        self._ksp = PETSc.KSP().create(mesh.comm)
+        self._ksp.setType("preonly")
+        pc = self._ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
         self._rhs = dolfinx.fem.petsc.create_vector(model.V)
-        self.factorisations = 0  # LU factorisations so far
-        self.krylov_iterations = 0  # GMRES iterations so far
 
     def _form(self, name: str):
         """The compiled form dR/dp of parameter ``name`` (cached)."""
@@ -95,7 +84,8 @@ class DisplacementSensitivity:
         self._K.zeroEntries()
         dolfinx.fem.petsc.assemble_matrix(self._K, model.problem.J, bcs=model.bcs)
         self._K.assemble()
-        out, most = [], 0
+        self._ksp.setOperators(self._K)  # a new factorisation for the new tangent
+        out = []
         for form in forms:
             with self._rhs.localForm() as local:
                 local.set(0.0)
@@ -105,12 +95,7 @@ class DisplacementSensitivity:
             for bc in model.bcs:
                 bc.set(self._rhs.array_w, alpha=0.0)
             du = dolfinx.fem.Function(model.V)
-            its, factorised = solve(self._ksp, self._K, self._rhs, du.x.petsc_vec, self._stale)
-            self._stale = False  # this state's tangent is factorised or preconditioned well enough
-            self.factorisations += factorised
-            self.krylov_iterations += its
-            most = max(most, its)
+            self._ksp.solve(self._rhs, du.x.petsc_vec)
             du.x.scatter_forward()
             out.append(du)
-        self._stale = self._refactor_krylov == 0 or most > self._refactor_krylov
         return out

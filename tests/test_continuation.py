@@ -271,9 +271,9 @@ def test_pseudo_time_on_a_kept_factorisation_reaches_the_same_equilibrium_with_f
     ``solver.refactor_krylov`` 10) reach the ramped equilibrium as the steps factorised one by
     one (``refactor_krylov`` 0) do, in the same number of steps, with fewer factorisations; a
     step on a kept factorisation took at most ``KRYLOV_BUDGET`` GMRES iterations."""
-    from skinfem.krylov import KRYLOV_BUDGET
     from skinfem.model import Factorisation, SkinModel
     from skinfem.params import Design, SkinParams
+    from skinfem.pseudo_time import KRYLOV_BUDGET
 
     params, design = SkinParams.from_array(TRUTH), Design(0.125, -0.125)
     solves = {}

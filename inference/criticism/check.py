@@ -117,7 +117,6 @@ class CheckTimings:
     fe_runs_read_from_cache: int = 0
     fe_runs_continued: int = 0  # started from a nearby point's states instead of a load ramp
     refined_fe_runs_continued: int = 0  # started from the check mesh's interpolated fields
-    derivative_factorisations: int = 0  # LU factorisations of the exact derivatives (skinfem.sensitivity)
     refined_runs: list[dict] = field(default_factory=list)  # forward.TransferredRun of every rank, as dicts
 
 
@@ -254,7 +253,6 @@ def run_check(
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), carried, timings)
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
-    timings.derivative_factorisations = forward.derivative_factorisations()
     diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
     return CheckResult(
         data=data,

@@ -367,8 +367,7 @@ def cost_lines(result: CheckResult) -> list[str]:
         f"next round {t.next_round_s:.0f} s ({t.next_round_fe_runs} runs); "
         f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
         f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
-        f"the cache of an earlier run (`fe_runs/`); {t.derivative_factorisations} factorisations for the "
-        f"exact derivatives.",
+        f"the cache of an earlier run (`fe_runs/`).",
         "",
     ]
 
