@@ -235,16 +235,17 @@ class FEForward(ForwardModel):
         t_grid = model.load_fractions()
         frames = sorted({float(t_grid[k]) for jj, k in self.picks if jj == j})
         indices = self.index(names)
-        d_reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference
+        d_reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference (None: zero)
         out = np.zeros((len(self.picks), max(self.counts), 3, 1 + len(names)))
         states = ConvergedStates(np.array(x, dtype=float), None, {})
+        moving = self.moving_reference(x, names)
 
         def at_reference():
             states.reference = model.u_ref.x.array.copy()
-            if names:
-                d_reference[:] = self.sensitivity(names)
-                for i, d_ref in zip(indices, d_reference):
-                    states.sensitivities[i] = (d_ref.x.array.copy(), {})
+            if moving:
+                for k, d_ref in zip(moving, self.sensitivity([names[k] for k in moving])):
+                    d_reference[k] = d_ref
+                    states.sensitivities[indices[k]] = (d_ref.x.array.copy(), {})
 
         def measure(t):
             k = int(np.argmin(np.abs(t_grid - t)))
@@ -318,6 +319,16 @@ class FEForward(ForwardModel):
         collective(self.comm, lambda: [self._run(key, j) for j in missing])
         self.runs += self.comm.allreduce(len(missing))
         self.seconds += time.perf_counter() - start
+
+    def moving_reference(self, x: np.ndarray, names: Sequence[str]) -> list[int]:
+        """Positions in ``names`` of the parameters whose derivative moves the unloaded reference
+        at ``x``: all of them under a pre-stress; without one (every pre-stressing effect at
+        zero) the reference is the stress-free u = 0 whatever the other parameters, and only
+        the pre-stressing effects' own parameters move it."""
+        prestressing = [n for n in self.names[5:] if EFFECTS[n.split(".")[0]].prestressed]
+        if any(x[self.names.index(n)] != 0.0 for n in prestressing):
+            return list(range(len(names)))
+        return [k for k, name in enumerate(names) if name in prestressing]
 
     def _continuation_solver(self) -> tuple[int, Factorisation]:
         """(Newton iterations, first factorisation) of a continued solve before it is ramped:
