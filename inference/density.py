@@ -37,15 +37,13 @@ class FusedLogDensity:
         self.constant = bank.constant.cpu().numpy()
         self.alpha = bank.alpha.cpu().numpy()
         self.y_mean, self.y_std = bank.y_mean.cpu().numpy(), bank.y_std.cpu().numpy()
-        self.scaled_train = bank.scaled_train.cpu().numpy()  # (G, n, d) x_train / l
-        self.scaled_train_sq = bank.scaled_train_sq.cpu().numpy()  # (G, n)
-        self.scaled_train_t = np.ascontiguousarray(self.scaled_train.transpose(0, 2, 1))  # (G, d, n)
+        self.scaled_train_t = np.ascontiguousarray(bank.scaled_train.cpu().numpy().transpose(0, 2, 1))  # (G, d, n)
+        self.scaled_train_sq = bank.scaled_train_sq.cpu().numpy()  # (G, n): |x_train / l|^2
         if posterior.gp_variance != "mode":
             raise ValueError("the closed form covers gp_variance='mode'; 'exact' uses autograd")
         self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
         self.lower, self.span = posterior.lower.numpy(), posterior.span.numpy()
-        self.design = posterior.design_inputs.numpy()
-        self.design_unit = (self.design - self.in_lower[5:]) / self.in_span[5:]  # (n_obs, 2)
+        self.design_unit = (posterior.design_inputs.numpy() - self.in_lower[5:]) / self.in_span[5:]  # (n_obs, 2)
         self.param_scale = self.span / self.in_span[:5]  # d(unit input) / dz
         # W (G, n_obs, n_obs), e (n_obs, G), log det of the known noise (0 with HalfCauchy noise)
         self.rotation, self.fixed_var, self.log_det_noise = posterior.fixed_eigen()

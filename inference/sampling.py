@@ -701,7 +701,6 @@ def _start_worker(progress) -> None:
     now, while the parent process finds the mode, not when the first chain arrives."""
     global _PROGRESS
     _PROGRESS = progress
-    torch.set_num_threads(1)
     import pyro.infer  # noqa: F401
 
 
