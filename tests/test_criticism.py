@@ -109,6 +109,31 @@ def test_calibration_at_a_bound_equals_bounded_least_squares_in_few_runs(linear_
     assert len(cal.chi2_path) <= 3 and cal.fe_runs <= 3 * (1 + 5), (cal.chi2_path, cal.fe_runs)
 
 
+def test_a_parameter_at_a_bound_moves_inward_when_the_step_over_all_does(linear_world, grid_xy):
+    """Two confounded parameters (columns ~0.99 correlated), the optimum inside the box, the fit
+    started with one at its upper bound where the gradient pushes it outward, while the
+    Gauss-Newton step over both brings it in (a skin parameter at its bound when a pre-stretch
+    is freed): its first step must take chi^2 99 % of the way to the least-squares solution
+    (lstsq, an independent route), which it then reaches. Holding the parameter by the
+    gradient's sign instead leaves the other to move alone: 77 % of the way."""
+    A = linear_world.A.copy()
+    A[:, 1] = A[:, 0] + 0.15 * A[:, 1]
+    world = LinearForward(A, linear_world.names, linear_world.bounds, linear_world.null)
+    values = dict(zip(world.names[:5], (1.0, 1.0, 0.5, -0.5, 0.2)))
+    data, _ = linear_data(world, grid_xy, values, seed=4)
+    start = np.zeros(len(world.names))
+    start[:5] = (-4.0, 5.0, 0.5, -0.5, 0.2)
+    r0 = (A @ start - data.fields.reshape(-1)) / 1e-4
+    assert (A[:, 1] / 1e-4) @ r0 < 0  # the gradient pushes the parameter at 5 outward
+    cal = calibrate(world, data, start, list(range(5)), max_iterations=20)
+    reference = np.linalg.lstsq(A[:, :5], data.fields.reshape(-1), rcond=None)[0]
+    assert np.all(np.abs(reference) < 5)
+    assert np.all(np.abs(cal.x[:5] - reference) < np.sqrt(CHI2_TOLERANCE) * cal.sd)
+    best = np.sum((A[:, :5] @ reference - data.fields.reshape(-1)) ** 2) / 1e-8
+    first, start_chi2 = cal.chi2_path[1] - best, cal.chi2_path[0] - best
+    assert first < 0.01 * start_chi2 and len(cal.chi2_path) <= 4, cal.chi2_path
+
+
 class GappyForward(LinearForward):
     """The linear world with no solution (None) or a NaN field where mu's coordinate is above 2."""
 
@@ -416,6 +441,45 @@ def test_fe_runs_are_kept_on_disk_per_setup(small_config, mesh_dir, tmp_path):
     for a, b in zip(repaired.evaluate_many(points), fields):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
     assert repaired.runs == 1 and repaired.reused == 1  # the damaged point ran again
+
+
+def test_a_point_run_with_more_derivatives_serves_fewer_without_a_run(small_config, mesh_dir):
+    """The diagnosis's signature run (the calibrated parameters' and every candidate's
+    derivatives) also serves the confirmation fits that start there: the same simulation, its
+    columns picked by name, equal to a separate run's; no new run."""
+    fe, _ = mixed_design_fe(small_config, mesh_dir)
+    x = fe.null.copy()
+    x[:5] = TRUTH.as_array()
+    richer = ["mu", "theta", "pre_stretch.eps_xx", "muscle_stiffness.log_factor"]
+    ((fields, derivatives),) = fe.evaluate_with_jacobian([x], richer)
+    ((again, picked),) = fe.evaluate_with_jacobian([x], ["muscle_stiffness.log_factor", "mu"])
+    (plain,) = fe.evaluate_many([x])
+    assert fe.runs == 1
+    np.testing.assert_array_equal(again, fields)
+    np.testing.assert_array_equal(plain, fields)
+    np.testing.assert_array_equal(picked, derivatives[..., [3, 0]])
+    separate, _ = mixed_design_fe(small_config, mesh_dir)
+    ((_, own),) = separate.evaluate_with_jacobian([x], ["muscle_stiffness.log_factor", "mu"])
+    np.testing.assert_allclose(picked, own, rtol=1e-9, atol=1e-12 * np.abs(own).max())
+
+
+def test_a_fit_starts_at_its_starting_point_bit_for_bit(linear_world, grid_xy):
+    """The first run of a fit is at the starting point itself, not at its round trip through
+    the unit box (which can differ in the last bit and miss the forward model's cache)."""
+    points = []
+
+    class Recording(LinearForward):
+        def evaluate_many(self, xs):
+            points.extend(np.array(x) for x in xs)
+            return super().evaluate_many(xs)
+
+    world = Recording(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
+    data, _ = linear_data(world, grid_xy, {"mu": 0.3}, seed=6)
+    start = np.zeros(len(world.names))
+    start[:5] = (0.1 + 0.2, -1 / 3, 2 / 7, np.pi / 10, -0.7)
+    points.clear()
+    calibrate(world, data, start, list(range(5)), max_iterations=2)
+    assert points[0].tobytes() == start.tobytes()
 
 
 def test_check_refuses_measurements_without_noise_and_unknown_effects(small_emulator, tmp_path):

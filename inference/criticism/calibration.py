@@ -82,12 +82,34 @@ def _trial_outcome(chi2: float, chi2_new: float | None) -> str:
     return f"chi^2 {chi2:,.1f} -> {chi2_new:,.1f}" + ("" if chi2_new < chi2 else " (step rejected)")
 
 
-def held_at_bounds(z: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """(k,) True for the parameters at a bound of the unit box that chi^2's descent (-g, g the
-    gradient's half J^T r) would push out of it: they stay where they are for the step, which
-    is then solved over the others (a projected Gauss-Newton step; clipping the full step
-    instead distorts the other parameters' step and makes Levenberg-Marquardt crawl)."""
-    return ((z <= 0) & (g > 0)) | ((z >= 1) & (g < 0))
+def damped_step(J: np.ndarray, r: np.ndarray, moving: np.ndarray, damping: float) -> np.ndarray:
+    """The Levenberg-Marquardt step dz (k,) of the parameters ``moving`` (k,) bool (0 for the
+    others): (A + damping diag(A)) dz = -J^T r over them, A = J^T J (J: (n, k), r: (n,))."""
+    A, g = J.T @ J, J.T @ r
+    dz = np.zeros(J.shape[1])
+    Am = A[np.ix_(moving, moving)]
+    dz[moving] = np.linalg.solve(Am + damping * np.diag(np.diag(Am) + 1e-12 * np.trace(A)), -g[moving])
+    return dz
+
+
+def bounded_step(J: np.ndarray, r: np.ndarray, z: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """(dz, held): the damped step in the unit box from z (k,) with the parameters ``held`` (k,)
+    at the bound that the step would cross kept there (a projected Gauss-Newton step).
+
+    Which are held is decided by the step itself, not by the gradient: starting with none,
+    the parameters at a bound whose step leaves the box are held and the step is solved again
+    over the others, until none leaves (at most k solves). A parameter pushed outward by the
+    gradient alone may still move inward once the parameters it is confounded with move (a
+    skin parameter at its bound when a pre-stretch is freed); holding it by the gradient's
+    sign kept such fits crawling along the bound. Clipping the full step instead distorts the
+    other parameters' step and makes Levenberg-Marquardt crawl as well."""
+    held = np.zeros(len(z), dtype=bool)
+    while True:
+        dz = damped_step(J, r, ~held, damping)
+        leaving = ((z <= 0) & (dz < 0)) | ((z >= 1) & (dz > 0))
+        if not np.any(leaving & ~held):
+            return dz, held
+        held |= leaving
 
 
 def gauss_newton_gain(J: np.ndarray, r: np.ndarray) -> float:
@@ -113,12 +135,18 @@ class _UnitBoxProblem:
         self.forward, self.data, self.free = forward, data, free
         self.lo, self.span = forward.bounds[free, 0], np.ptp(forward.bounds[free], axis=1)
         self.base = np.asarray(x0, dtype=float).copy()
+        self.base[free] = np.clip(self.base[free], *forward.bounds[free].T)
+        self.start = (self.base[free] - self.lo) / self.span
         self.rejected: list[np.ndarray] = []
         self.fields: dict[bytes, np.ndarray] = {}  # model fields of evaluated z (no rerun at the end)
 
     def point(self, z: np.ndarray) -> np.ndarray:
+        """The parameters at z; at the start, the starting point bit for bit (not its round trip
+        through the unit box), so that a run made there before, e.g. the diagnosis's signatures
+        at a calibrated point, is found in the forward model's cache."""
         x = self.base.copy()
-        x[self.free] = self.lo + np.clip(z, 0, 1) * self.span
+        if not np.array_equal(z, self.start):
+            x[self.free] = self.lo + np.clip(z, 0, 1) * self.span
         return x
 
     def residuals(self, zs: list[np.ndarray]) -> list[np.ndarray | None]:
@@ -174,7 +202,7 @@ def calibrate(
     """Least-squares fit of the free parameters (within their prior box) to the whitened data.
 
     Levenberg–Marquardt in the unit box of the prior: parameters at a bound that the descent
-    pushes outward are held for the step (:func:`held_at_bounds`), the rest clipped to the box. A trial
+    would cross are held for the step (:func:`bounded_step`), the rest clipped to the box. A trial
     point where the FE model does not converge is a rejected step: the damping grows (the
     step shrinks), the point is recorded in ``Calibration.rejected`` and the fit continues.
     Jacobians are exact when the forward model has derivatives (forward sensitivities: one
@@ -192,7 +220,7 @@ def calibrate(
     """
     start, runs0 = time.perf_counter(), forward.runs
     problem = _UnitBoxProblem(forward, data, x0, free)
-    z = np.clip((problem.base[free] - problem.lo) / problem.span, 0, 1)
+    z = problem.start
     r, J = problem.evaluate(z)
     if r is None:
         at = ", ".join(f"{forward.names[i]} = {v:.4g}" for i, v in zip(free, problem.point(z)[free]))
@@ -200,14 +228,10 @@ def calibrate(
     J, damping = problem.jacobian(z, r, step) if J is None else J, 1e-3
     chi2_path = [float(r @ r)]
     for _ in range(max_iterations):
-        A, g = J.T @ J, J.T @ r
-        moving = ~held_at_bounds(z, g)
+        dz, held = bounded_step(J, r, z, damping)
         tolerance = max(CHI2_TOLERANCE, relative_tolerance * float(r @ r))
-        if gauss_newton_gain(J[:, moving], r) < tolerance:  # even the full step would not be visible
+        if gauss_newton_gain(J[:, ~held], r) < tolerance:  # even the full step would not be visible
             break
-        dz = np.zeros_like(z)
-        Am = A[np.ix_(moving, moving)]
-        dz[moving] = np.linalg.solve(Am + damping * np.diag(np.diag(Am) + 1e-12 * np.trace(A)), -g[moving])
         z_new = np.clip(z + dz, 0, 1)
         if np.max(np.abs(z_new - z)) < 1e-8:
             break

@@ -151,16 +151,19 @@ def signatures(
 ) -> dict[str, np.ndarray]:
     """Whitened signatures (n, dim phi) of each effect: derivatives of the model at ``cal.x``.
 
-    Exact (forward sensitivities, one run) when the forward model has derivatives. Otherwise
+    Exact (forward sensitivities, one run) when the forward model has derivatives; that run
+    also gives the calibrated parameters' derivatives, so that a candidate's confirmation fit,
+    which starts there, starts without a run of its own (the forward model's cache). Otherwise
     each parameter is moved ``rel_step`` of its prior range both ways, clipped to the range
     (a null value on a bound gives a one-sided difference); a side whose FE run failed is
     replaced by the calibrated point itself; if both fail the column is zero.
     """
     if forward.exact_jacobian:
         names = [q for name in effects for q in get_effect(name).qualified_names()]
-        (result,) = forward.evaluate_with_jacobian([cal.x], names)
+        calibrated = [forward.names[i] for i in cal.free]
+        (result,) = forward.evaluate_with_jacobian([cal.x], calibrated + names)
         if result is not None:
-            columns = iter(data.whiten(result[1][..., i]) for i in range(len(names)))
+            columns = iter(data.whiten(result[1][..., len(calibrated) + i]) for i in range(len(names)))
             return {name: np.stack([next(columns) for _ in get_effect(name).parameters], 1) for name in effects}
     jobs = []  # (effect, parameter index, low value, high value)
     for name in effects:
