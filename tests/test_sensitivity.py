@@ -12,6 +12,16 @@ NAMES = ["mu", "k1", "theta", "muscle_stiffness.log_factor", "skin_thickness.log
 STEPS = {"mu": 1e-7, "k1": 1e-6, "theta": 1e-3, "muscle_stiffness.log_factor": 1e-4, "skin_thickness.log_factor": 1e-4}
 
 
+def mixed_design_forward(config, mesh_dir):
+    """The serial FE forward model (all effects, no continuation) of the last frame of the
+    mixed design on a 4 mm grid of DIC points over +-16 mm."""
+    from inference.forward import FEForward, PointSet
+
+    g = np.linspace(-16, 16, 9)
+    obs = [PointSet(np.array([0.05, -0.05]), 1.0, np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
+    return FEForward(config, obs, config.sweep.box, mesh_dir, increments=2, comm=MPI.COMM_SELF, continuation=False)
+
+
 @pytest.mark.slow
 def test_dic_strain_sensitivities_equal_central_differences(small_config, mesh_dir):
     """K du/dp = -dR/dp (UFL derivative of the energy), measured by the linearised DIC gauge,
@@ -58,13 +68,7 @@ def test_without_pre_stretch_only_its_parameters_move_the_reference(small_config
     parameters' columns equal central differences of full simulations (1e-5 of the largest).
     (The pre-stretch's own columns are one-sided here: at zero pre-stretch every fiber sits at
     the tension-only switch, Ebar = 0.)"""
-    from inference.forward import FEForward, PointSet
-
-    g = np.linspace(-16, 16, 9)
-    obs = [PointSet(np.array([0.05, -0.05]), 1.0, np.stack(np.meshgrid(g, g), -1).reshape(-1, 2))]
-    forward = FEForward(
-        small_config, obs, small_config.sweep.box, mesh_dir, increments=2, comm=MPI.COMM_SELF, continuation=False
-    )
+    forward = mixed_design_forward(small_config, mesh_dir)
     names = ["mu", "theta", "pre_stretch.eps_xx", "pre_stretch.eps_xy"]
     x = forward.null.copy()
     x[:5] = [0.0012, 0.017, 11.0, 0.2, 30.0]
@@ -86,3 +90,41 @@ def test_without_pre_stretch_only_its_parameters_move_the_reference(small_config
         difference = (forward(x + dx) - forward(x - dx)) / (2 * step)
         assert np.abs(difference).max() > 0
         np.testing.assert_allclose(jacobian[..., k], difference, atol=1e-5 * np.abs(difference).max(), err_msg=name)
+
+
+@pytest.mark.slow
+def test_pre_stretch_sensitivities_equal_central_differences_under_a_pre_stretch(small_config, mesh_dir):
+    """Away from zero pre-stretch (every fiber of the unloaded skin in tension, off the
+    tension-only switch) the pre-stretch's own columns and a skin parameter's, through the
+    pre-stressed reference and the loaded state, equal central differences of full
+    simulations (1e-5 of the largest)."""
+    forward = mixed_design_forward(small_config, mesh_dir)
+    steps = {"pre_stretch.eps_xx": 1e-5, "pre_stretch.eps_yy": 1e-5, "pre_stretch.eps_xy": 1e-5, "mu": 1e-7}
+    x = forward.null.copy()
+    x[:5] = [0.0012, 0.017, 11.0, 0.2, 30.0]
+    x[forward.index(list(steps)[:3])] = [0.05, 0.03, 0.02]
+    ((_, jacobian),) = forward.evaluate_with_jacobian([x], list(steps))
+    for k, (name, step) in enumerate(steps.items()):
+        dx = step * (np.array(forward.names) == name)
+        difference = (forward(x + dx) - forward(x - dx)) / (2 * step)
+        assert np.abs(difference).max() > 0
+        np.testing.assert_allclose(jacobian[..., k], difference, atol=1e-5 * np.abs(difference).max(), err_msg=name)
+
+
+@pytest.mark.slow
+def test_at_zero_pre_stretch_its_columns_are_the_compressive_side(small_config, mesh_dir):
+    """At zero pre-stretch every fiber of the unloaded skin sits at the tension-only switch
+    (Ebar = 0, the fiber energy's second derivative jumps): the pre-stretch's columns are the
+    compressive side's derivative (fibers off). One-sided differences from below converge to
+    them (1e-4 of the largest at h = 1e-5); from above, where the fibers take load, they stay
+    more than 5 % away."""
+    forward = mixed_design_forward(small_config, mesh_dir)
+    x = forward.null.copy()
+    x[:5] = [0.0012, 0.017, 11.0, 0.2, 30.0]
+    for name in ("pre_stretch.eps_xx", "pre_stretch.eps_xy"):
+        ((fields, jacobian),) = forward.evaluate_with_jacobian([x], [name])
+        column, dx = jacobian[..., 0], 1e-5 * (np.array(forward.names) == name)
+        below, above = (fields - forward(x - dx)) / 1e-5, (forward(x + dx) - fields) / 1e-5
+        scale = np.abs(column).max()
+        assert np.abs(below - column).max() < 1e-4 * scale, name
+        assert np.abs(above - column).max() > 0.05 * scale, name
