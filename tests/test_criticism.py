@@ -277,6 +277,25 @@ def test_the_noise_estimate_keeps_the_carried_model_error_apart(linear_world, gr
     assert noise_factor(plain, truth, plain.n) == pytest.approx(np.sqrt(r @ r / plain.n), rel=1e-12)
 
 
+def test_chi2_at_any_noise_factor_from_one_decomposition_equals_whitening_at_it(grid_xy):
+    """chi^2(s) with the stated sd times s and a carried, correlated model error kept, from one
+    eigen-decomposition per observation and component, equals whitening the residual by the
+    covariance at each s (1e-9), on two observations with holes and uneven model-error sd."""
+    from inference.criticism.data import ModelError
+
+    rng = np.random.default_rng(3)
+    xy = np.broadcast_to(grid_xy, (2, *grid_xy.shape))
+    masks = rng.random((2, len(grid_xy))) > 0.2
+    stated = NoiseModel(np.array([1e-4, 2e-4, 1.5e-4]), 2.0, 0.3)
+    error = ModelError(rng.uniform(0.5e-4, 2e-4, (2, len(grid_xy), 3)), length=6.0, nugget=0.25)
+    residual = rng.normal(size=(2, len(grid_xy), 3)) * 3e-4
+    data = Data(residual, masks, xy, stated, error)
+    chi2 = data.chi2_of_noise_factor(np.zeros_like(residual))
+    for s in (0.4, 1.0, 2.7):
+        r = data.with_noise_factor(s).whiten(residual)
+        assert chi2(s) == pytest.approx(float(r @ r), rel=1e-9), s
+
+
 def test_linearised_fe_model_is_accurate_near_its_expansion_point(taylor_at_truth):
     """The Taylor model must reproduce FE at a nearby point (2 % of the prior box away)."""
     forward, _ = taylor_at_truth

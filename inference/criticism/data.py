@@ -8,6 +8,7 @@ attached to their points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -53,6 +54,23 @@ class NoiseModel:
                     for c, s in enumerate(self.sd)
                 ]
         return self._roots[key]
+
+    def noise_scaling(
+        self, residual: np.ndarray, xy: np.ndarray, model_sd: np.ndarray, model_correlation: tuple[float, float]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(z, mu), each (3m,): r^T (s^2 Sigma_c + D_c R_m D_c)^-1 r summed over the components c
+        of ``residual`` (m, 3) at points xy (m, 2) equals sum z^2 / (s^2 + mu) for every noise
+        factor s (model error as in :meth:`whiteners`). With W_c = Sigma_c^(-1/2) and
+        W_c D_c R_m D_c W_c = Q diag(mu) Q^T: z = Q^T W_c r; one eigen-decomposition per
+        component instead of one whitening per factor."""
+        model_corr = correlation_matrix(xy, *model_correlation)
+        z, mu = [], []
+        for c, root in enumerate(self.whiteners(xy)):
+            model = model_sd[:, c, None] * model_corr * model_sd[None, :, c]
+            values, vectors = np.linalg.eigh(root @ model @ root)
+            z.append(vectors.T @ (root @ residual[:, c]))
+            mu.append(np.maximum(values, 0.0))
+        return np.concatenate(z), np.concatenate(mu)
 
     def whiten(
         self, residual: np.ndarray, xy: np.ndarray, masks: np.ndarray, model_error: ModelError | None = None
@@ -167,6 +185,20 @@ class Data:
 
     def whitened_residual(self, model_fields: np.ndarray) -> np.ndarray:
         return self.noise.whiten(self.fields - model_fields, self.xy, self.masks, self.model_error)
+
+    def chi2_of_noise_factor(self, model_fields: np.ndarray) -> Callable[[float], float]:
+        """chi^2(s) of the residual when the stated noise sd is multiplied by s and the carried
+        model error kept (:meth:`NoiseModel.noise_scaling`: one decomposition for every s)."""
+        if self.model_error is None:
+            r = stack(self.whitened_residual(model_fields), self.masks)
+            return lambda s: float(r @ r) / s**2
+        error, parts = self.model_error, []
+        correlation = (error.length, error.nugget)
+        for o, mask in enumerate(self.masks):
+            residual = (self.fields - model_fields)[o, mask]
+            parts.append(self.noise.noise_scaling(residual, self.xy[o, mask], error.sd[o, mask], correlation))
+        z, mu = (np.concatenate(a) for a in zip(*parts))
+        return lambda s: float(np.sum(z**2 / (s**2 + mu)))
 
     def whiten(self, fields: np.ndarray) -> np.ndarray:
         """Stacked whitened (n,) of any (n_obs, n_pts, 3) field difference."""

@@ -93,21 +93,16 @@ def check_noise_statement(
 def noise_factor(data: Data, model_fields: np.ndarray, dof: int) -> float:
     """The factor on the stated noise sd at which the residual's chi^2 equals ``dof``, the
     carried model error held as it is: sqrt(chi^2/dof) without one; with one, the root of
-    chi^2(s) = dof (chi^2 falls monotonically as the noise grows). 1 when chi^2 <= dof."""
-
-    def chi2(factor: float) -> float:
-        r = stack(data.with_noise_factor(factor).whitened_residual(model_fields), data.masks)
-        return float(r @ r)
-
+    chi^2(s) = dof (chi^2 falls monotonically as the noise grows, and stays below its value
+    without the model error, chi^2_noise / s^2). 1 when chi^2 <= dof."""
+    chi2 = data.chi2_of_noise_factor(model_fields)
     at_stated = chi2(1.0)
     if at_stated <= dof:
         return 1.0
     if data.model_error is None:
         return math.sqrt(at_stated / dof)
-    r = stack(data.with_model_error(None).whitened_residual(model_fields), data.masks)
-    upper = math.sqrt(max(float(r @ r), at_stated) / dof)  # chi^2(s) <= chi^2 without the model error / s^2
-    if chi2(upper) >= dof:  # only if the whitening's eigenvalue floor bent the bound
-        return upper
+    noise_only = data.with_model_error(None).chi2_of_noise_factor(model_fields)(1.0)
+    upper = math.sqrt(max(noise_only, at_stated) / dof)
     return math.exp(optimize.brentq(lambda log_s: chi2(math.exp(log_s)) - dof, 0.0, math.log(upper), xtol=1e-4))
 
 
