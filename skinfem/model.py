@@ -528,7 +528,9 @@ class SkinModel:
         pre-stressed model (zero if None).
 
         ``factorisation`` is the first attempt's policy: ``REUSE`` (the previous solve's
-        factorisation preconditions GMRES) for guesses from nearby parameters; ``EVERY_STEP``
+        factorisation preconditions GMRES) for guesses from nearby parameters (a fresh one for
+        the unloaded reference: the kept factorisation is of a loaded frame, a preconditioner
+        so poor there that GMRES ran out of iterations before the retry); ``EVERY_STEP``
         marks guesses far from equilibrium, such as another mesh's fields, where Newton stalls:
         the first frame (and the unloaded reference) is then solved by pseudo-transient
         continuation (:meth:`_solve_far_start`), cheaper than a ramp on a fine mesh. A failed
@@ -569,7 +571,8 @@ class SkinModel:
             self.set_params(params)
             self.factorizations, self.far_starts = 0, []
             start = np.zeros_like(self.u.x.array) if reference_guess is None else reference_guess
-            if not self._reference_equilibrium(design, start, lambda: newton(factorisation)[0], on_reference):
+            reference = max(factorisation, Factorisation.FIRST_STEP)  # the kept factorisation is a loaded frame's
+            if not self._reference_equilibrium(design, start, lambda: newton(reference)[0], on_reference):
                 return False
             policy, correction = factorisation, None  # correction: last converged frame less its guess
             for t, guess in guesses:
