@@ -103,6 +103,8 @@ def noise_factor(data: Data, model_fields: np.ndarray, dof: int) -> float:
         return math.sqrt(at_stated / dof)
     noise_only = data.with_model_error(None).chi2_of_noise_factor(model_fields)(1.0)
     upper = math.sqrt(max(noise_only, at_stated) / dof)
+    if chi2(upper) >= dof:  # only by rounding, where the model error is zero at every point
+        return upper
     return math.exp(optimize.brentq(lambda log_s: chi2(math.exp(log_s)) - dof, 0.0, math.log(upper), xtol=1e-4))
 
 
