@@ -82,11 +82,10 @@ def _trial_outcome(chi2: float, chi2_new: float | None) -> str:
     return f"chi^2 {chi2:,.1f} -> {chi2_new:,.1f}" + ("" if chi2_new < chi2 else " (step rejected)")
 
 
-def damped_step(J: np.ndarray, r: np.ndarray, moving: np.ndarray, damping: float) -> np.ndarray:
+def damped_step(A: np.ndarray, g: np.ndarray, moving: np.ndarray, damping: float) -> np.ndarray:
     """The Levenberg-Marquardt step dz (k,) of the parameters ``moving`` (k,) bool (0 for the
-    others): (A + damping diag(A)) dz = -J^T r over them, A = J^T J (J: (n, k), r: (n,))."""
-    A, g = J.T @ J, J.T @ r
-    dz = np.zeros(J.shape[1])
+    others): (A + damping diag(A)) dz = -g over them, A = J^T J (k, k), g = J^T r (k,)."""
+    dz = np.zeros(len(g))
     Am = A[np.ix_(moving, moving)]
     dz[moving] = np.linalg.solve(Am + damping * np.diag(np.diag(Am) + 1e-12 * np.trace(A)), -g[moving])
     return dz
@@ -103,9 +102,9 @@ def bounded_step(J: np.ndarray, r: np.ndarray, z: np.ndarray, damping: float) ->
     skin parameter at its bound when a pre-stretch is freed); holding it by the gradient's
     sign kept such fits crawling along the bound. Clipping the full step instead distorts the
     other parameters' step and makes Levenberg-Marquardt crawl as well."""
-    held = np.zeros(len(z), dtype=bool)
+    A, g, held = J.T @ J, J.T @ r, np.zeros(len(z), dtype=bool)
     while True:
-        dz = damped_step(J, r, ~held, damping)
+        dz = damped_step(A, g, ~held, damping)
         leaving = ((z <= 0) & (dz < 0)) | ((z >= 1) & (dz > 0))
         if not np.any(leaving & ~held):
             return dz, held
