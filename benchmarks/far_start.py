@@ -26,6 +26,9 @@ its biaxial design's refined run took 48 factorisations, 1,629 s): the check mes
 that check's calibrated baseline, interpolated onto its edge refinement (224k dofs) and solved
 there as a transferred run is (one rank, ~5 minutes and ~10 GB per design); each design and
 ``--refactor-krylov`` is kept under its own key of the results file and not run again.
+Every record names the step control it ran with (first dt, smallest growth, and
+``skinfem.pseudo_time.LINEARITY``: dt grows 10x after two steps that did what their linearisation
+predicted; ``far_start_linear.json`` and ``far_start_transfer_linear.json`` since that rule).
 Recorded, not asserted.
 """
 
@@ -139,6 +142,7 @@ def run_transfer(coarse, states, params: SkinParams, design: Design, refactor_kr
     return {
         "first_step": skinfem.pseudo_time.FIRST_STEP,
         "min_growth": skinfem.pseudo_time.MIN_GROWTH,
+        "linearity": skinfem.pseudo_time.LINEARITY,
         "params": TRANSFER_PARAMS,
         "design": [design.alpha11, design.alpha22],
         "dofs": [coarse.n_dofs, fine.n_dofs],
@@ -185,6 +189,7 @@ def write_transfer(args) -> None:
 def write_far_starts(args) -> None:
     """The 30 far starts on ``args.config`` for every ``--refactor-krylov``, smallest growth and
     first step."""
+    import skinfem.pseudo_time
     from skinfem.config import load_config
     from skinfem.model import SkinModel
 
@@ -208,7 +213,14 @@ def write_far_starts(args) -> None:
         f" --first-steps {' '.join(map(str, first_steps))} --min-growths {' '.join(map(str, growths))}"
         f" --refactor-krylov {' '.join(map(str, refactors))}"
     )
-    summary = {"command": command, "config": args.config, "dofs": model.n_dofs, "cap": CAP, "variants": results}
+    summary = {
+        "command": command,
+        "config": args.config,
+        "dofs": model.n_dofs,
+        "cap": CAP,
+        "linearity": skinfem.pseudo_time.LINEARITY,
+        "variants": results,
+    }
     (args.out or HERE / "results" / "far_start.json").write_text(json.dumps(summary, indent=1) + "\n")
 
 

@@ -16,7 +16,11 @@ cost on the starts of ``benchmarks/far_start.py``: ``benchmarks/results/homotopy
 
 Step control: a step is accepted when its residual norm is finite and at most ``RISE`` times
 the previous one; dt then grows by twice the residual's fall (switched evolution relaxation),
-at least ``MIN_GROWTH`` x and at most ``GROWTH`` x. A rejected step is undone and dt divided by ``SHRINK``.
+at least ``MIN_GROWTH`` x and at most ``GROWTH`` x, or by ``GROWTH`` x when the last two steps were
+*linear*: their residual within ``LINEARITY`` of the one their linearisation predicts,
+|R(u) + K du| = |D du| / dt. Such a flow is held back by dt alone — modes the damping D makes
+slow, e.g. the skin moving with the stiff membrane —, not by the nonlinearity that a slow growth
+guards against. A rejected step is undone and dt divided by ``SHRINK``.
 
 Linear solves: with ``refactor_krylov = 0`` one MUMPS LU factorisation per step; otherwise, as
 in the load ramp, GMRES (right-preconditioned, so it measures the true residual [N]) on the
@@ -42,19 +46,37 @@ RISE = 2.0
 MIN_GROWTH = 2.0
 GROWTH = 10.0
 SHRINK = 4.0
+LINEARITY = 0.1  # relative gap between a step's residual and its linearisation's that counts as linear
 KRYLOV_BUDGET = 30  # GMRES iterations on a reused factorisation before refactorising (~2/3 of a factorisation's cost)
 
 
 @dataclass(frozen=True)
 class PseudoTimeStep:
-    """One pseudo-time step: its dt, the residual norm [N] it reached, whether it was kept, the
-    GMRES iterations of its linear solve (0 for a direct solve) and whether it factorised."""
+    """One pseudo-time step: its dt, the residual norm [N] it reached and the one its
+    linearisation predicted (|D du| / dt), whether it was kept, the GMRES iterations of its
+    linear solve (0 for a direct solve) and whether it factorised."""
 
     dt: float
     residual: float
+    predicted: float
     accepted: bool
     krylov_iterations: int = 0
     factorised: bool = True
+
+    @property
+    def linear(self) -> bool:
+        """Kept, with the residual its linearisation predicted (within ``LINEARITY``)."""
+        return self.accepted and abs(self.residual - self.predicted) <= LINEARITY * self.predicted
+
+
+def next_step(steps: list[PseudoTimeStep], norm: float) -> float:
+    """The dt after ``steps`` (module doc), ``norm`` [N]: the residual before the last step."""
+    last = steps[-1]
+    if not last.accepted:
+        return last.dt / SHRINK
+    if len(steps) > 1 and steps[-2].linear and last.linear:
+        return last.dt * GROWTH
+    return last.dt * min(GROWTH, max(MIN_GROWTH, 2.0 * norm / last.residual))
 
 
 @dataclass(frozen=True)
@@ -105,7 +127,7 @@ def pseudo_transient(
     snes.computeJacobian(x, tangent, tangent)
     damping = tangent.getDiagonal()
     damping.abs()
-    shift, du, previous = damping.duplicate(), x.duplicate(), x.duplicate()
+    shift, du, previous, linearised = damping.duplicate(), x.duplicate(), x.duplicate(), x.duplicate()
     ksp = _linear_solver(x.comm, refactor_krylov, krylov_rtol, 0.1 * atol)
     norm = start = residual.norm()
     dt, steps, stale = first_step, [], True
@@ -122,19 +144,19 @@ def pseudo_transient(
             x.axpy(-1.0, du)
             snes.computeFunction(x, residual)
             new = residual.norm()
+            linearised.pointwiseMult(shift, du)
             accepted = bool(np.isfinite(new) and new <= RISE * norm)
-            steps.append(PseudoTimeStep(dt, float(new), accepted, krylov, factorised))
+            steps.append(PseudoTimeStep(dt, float(new), linearised.norm(), accepted, krylov, factorised))
+            dt = next_step(steps, norm)
             if accepted:
-                dt *= min(GROWTH, max(MIN_GROWTH, 2.0 * norm / new))
                 norm = new
             else:
                 previous.copy(x)
                 snes.computeFunction(x, residual)
-                dt /= SHRINK
     finally:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         dolfinx.fem.petsc.assign(x, u)
-        for v in (damping, shift, du, previous):
+        for v in (damping, shift, du, previous, linearised):
             v.destroy()
         ksp.destroy()
     return FarStart(bool(norm < atol), float(start), tuple(steps))

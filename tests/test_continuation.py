@@ -276,6 +276,32 @@ def test_pseudo_time_reaches_the_ramped_equilibrium_where_newton_fails(small_mod
     (solve,) = small_model.far_starts
     assert solve.converged and solve.steps
     assert small_model.factorizations == solve.factorisations  # those of the steps that renewed it
+    # the steps record the residual their linearisation predicted, |D du| / dt: on the plateau
+    # where dt alone holds the flow back the two agree (a wrong formula would not, to 1 %)
+    gaps = [abs(step.residual / step.predicted - 1) for step in solve.steps if step.accepted]
+    assert min(gaps) < 1e-2
+
+
+def test_pseudo_time_grows_dt_tenfold_after_two_linear_steps():
+    """dt after a step: divided by 4 after a rejected one; 10x after two kept steps that did
+    what their linearisation predicted (within 10 %); else twice the residual's fall, clipped to
+    [2, 10]x — a rejected step in between, or one nonlinear step, keeps the slow growth."""
+    from skinfem.pseudo_time import PseudoTimeStep, next_step
+
+    def step(dt, residual, predicted, accepted=True):
+        return PseudoTimeStep(dt, residual, predicted, accepted)
+
+    linear, nonlinear = step(10.0, 1.05e-3, 1e-3), step(10.0, 1.2e-3, 1e-3)
+    assert linear.linear and not nonlinear.linear
+    assert next_step([linear, step(20.0, 0.9e-3, 0.95e-3)], norm=1e-3) == pytest.approx(200.0)
+    assert next_step([linear, step(20.0, 1e-4, 1.05e-4)], norm=1.2e-3) == pytest.approx(200.0)
+    assert next_step([nonlinear, step(20.0, 1.5e-3, 1.45e-3)], norm=1e-3) == pytest.approx(40.0)  # rose: 2x
+    assert next_step([nonlinear, step(20.0, 2.5e-4, 1e-4)], norm=1e-3) == pytest.approx(160.0)  # twice a fall of 4
+    assert next_step([nonlinear, step(20.0, 1e-6, 1e-9)], norm=1e-3) == pytest.approx(200.0)  # at most 10x
+    rejected = step(40.0, 5e-3, 5e-3, accepted=False)
+    assert not rejected.linear
+    assert next_step([linear, rejected], norm=1e-3) == pytest.approx(10.0)
+    assert next_step([rejected, step(10.0, 1.5e-3, 1.5e-3)], norm=1e-3) == pytest.approx(20.0)
 
 
 def test_pseudo_time_on_a_kept_factorisation_reaches_the_same_equilibrium_with_fewer(small_config, mesh_dir):
@@ -326,7 +352,7 @@ def test_a_far_start_describes_itself_in_one_line_without_a_nan():
     start and the one its last kept step reached, or that none was kept."""
     from skinfem.pseudo_time import FarStart, PseudoTimeStep
 
-    steps = (PseudoTimeStep(10.0, 2e-3, True, 0, True), PseudoTimeStep(100.0, 9e-3, False, 4, False))
+    steps = (PseudoTimeStep(10.0, 2e-3, 1e-3, True, 0, True), PseudoTimeStep(100.0, 9e-3, 1e-3, False, 4, False))
     assert FarStart(False, 0.0145, steps).describe() == "pseudo-time 2 steps, 1 factorisations (0.0145 -> 0.002 N)"
     none_kept = FarStart(False, 0.0145, steps[1:]).describe()
     assert none_kept == "pseudo-time 1 steps, 0 factorisations (0.0145 -> none kept)"

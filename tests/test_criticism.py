@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -704,7 +705,13 @@ def linear_check(world, data, baseline, added):
         start_from="given start",
         gauge_text="a grid",
         fe_seconds_per_run=0.5,
-        timings=CheckTimings(compare_s=2.0, compare_fe_runs=4, diagnose_fe_runs=9, fe_runs_continued=3),
+        timings=CheckTimings(
+            compare_s=2.0,
+            compare_fe_runs=4,
+            diagnose_fe_runs=9,
+            fe_runs_continued=3,
+            refined_runs=[{"design": [0.05, -0.05], "residuals": [0.0166, float("nan"), 0.0022]}],
+        ),
     )
 
 
@@ -729,8 +736,13 @@ def assert_report_reads_back(result, out):
         disc.amplitude_sd,
     )
     assert report.failed_runs == [ReportFailedRun(dict(zip(result.names, range(len(result.names)))), "diverged")]
-    assert report.timings == result.timings
-    older = json.loads((out / "report.json").read_text())
+    # strict JSON: a pseudo-time step that diverged (NaN residual) is written as null
+    text = (out / "report.json").read_text()
+    json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
+    ((run, read_run),) = zip(result.timings.refined_runs, report.timings.refined_runs)
+    assert read_run == {**run, "residuals": [0.0166, None, 0.0022]}
+    assert dataclasses.replace(report.timings, refined_runs=[]) == dataclasses.replace(result.timings, refined_runs=[])
+    older = json.loads(text)
     del older["discretisation"]["order"]  # a report written before the field existed
     (out / "older.json").write_text(json.dumps(older))
     with pytest.raises(ValueError, match="not a report.json of this version of skinid.*rerun the check"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -206,7 +207,7 @@ def write_report(result: CheckResult, out: Path | str) -> Path:
         + cost_lines(result)
     )
     path = out / "report.md"
-    write_text(out / "report.json", json.dumps(report_dict(result), indent=2) + "\n")
+    write_text(out / "report.json", json.dumps(finite_or_null(report_dict(result)), indent=2, allow_nan=False) + "\n")
     write_text(path, "\n".join(lines))  # last: a report.md means a complete report
     return path
 
@@ -370,6 +371,19 @@ def cost_lines(result: CheckResult) -> list[str]:
         f"the cache of an earlier run (`fe_runs/`).",
         "",
     ]
+
+
+def finite_or_null(value):
+    """``value`` (nested dicts, lists and numbers) with every non-finite float replaced by None:
+    report.json is strict JSON, with null where a number is not finite (e.g. the residual of a
+    pseudo-time step that diverged)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v) for v in value]
+    return value
 
 
 def report_dict(result: CheckResult) -> dict:
