@@ -18,9 +18,9 @@ Step control: a step is accepted when its residual norm is finite and at most ``
 the previous one; dt then grows by twice the residual's fall (switched evolution relaxation),
 at least ``MIN_GROWTH`` x and at most ``GROWTH`` x, or by ``GROWTH`` x when the last two steps were
 *linear*: their residual within ``LINEARITY`` of the one their linearisation predicts,
-|R(u) + K du| = |D du| / dt. Such a flow is held back by dt alone — modes the damping D makes
-slow, e.g. the skin moving with the stiff membrane —, not by the nonlinearity that a slow growth
-guards against. A rejected step is undone and dt divided by ``SHRINK``.
+|R(u) + K du| = |D du| / dt. Such a flow is held back by dt alone — by modes that the damping
+D slows far more than K resists them (presumably the skin moving with the stiff membrane) —,
+not by the nonlinearity that a slow growth guards against. A rejected step is undone and dt divided by ``SHRINK``.
 
 Linear solves: with ``refactor_krylov = 0`` one MUMPS LU factorisation per step; otherwise, as
 in the load ramp, GMRES (right-preconditioned, so it measures the true residual [N]) on the
