@@ -2,7 +2,7 @@
 
     mpirun -n 2 python benchmarks/criticism.py [--config small] [--cases none pre_stretch ...]
                                                [--seeds 5] [--out out/criticism_bench]
-                                               [--data q2 | q2-edge] [--refine uniform | edge]
+                                               [--data q2 | q2-edge] [--refine uniform | edge | quadratic]
                                                [--start spread | centre] [--results FILE]
 
 Data the checked model did not make: quadratic elements (Q2) on a mesh graded differently from
@@ -333,9 +333,9 @@ def main() -> None:
     parser.add_argument("--data", choices=list(DATA_MESHES), default="q2", help="the data's discretisation")
     parser.add_argument(
         "--refine",
-        choices=["uniform", "edge"],
+        choices=["uniform", "edge", "quadratic"],
         default="uniform",
-        help="the check's refined mesh for its discretisation estimate",
+        help="the check's better mesh for its discretisation estimate",
     )
     parser.add_argument(
         "--start",

@@ -67,6 +67,7 @@ def _measurement(path, extent=20.0, step=2.0):
         ("few", "4 measured points are not more than the 5 parameters"),
         ("no_mesh", "give the mesh to check on with --config"),
         ("start", "--start is outside the prior box: theta = 120 not in [0, 90]"),
+        ("refine", "the quadratic reference is for linear (Q1) meshes"),
     ],
 )
 def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path):
@@ -82,7 +83,9 @@ def test_bad_measurements_get_one_line_and_no_report(problem, expected, tmp_path
     elif problem == "few":
         text = text[:6] + [f"{x},{y},0,0,0,0.001,0.001,0.001" for x, y in ((10, 10), (10, -10), (-10, 10), (9, 10))]
     path.write_text("\n".join(text) + "\n")
-    config = [] if problem == "no_mesh" else ["--config", "small"]
+    config = {"no_mesh": [], "refine": ["--config", "check", "--refine", "quadratic"]}.get(
+        problem, ["--config", "small"]
+    )
     start = ["--start", "1e-3", "0.017", "11", "0.285", "120"] if problem == "start" else []
     res = skinid("check", *config, *start, "--measurement", path, "--out", tmp_path / "report")
     assert res.returncode == 2

@@ -97,7 +97,7 @@ def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
     g = np.stack([np.cos(xy[0] @ [0.1, -0.3])[:, None] * [4e-3, 2e-3, 1e-3]])
     data = Data(exact, masks, xy, NoiseModel(np.full(3, 1e-3), 2.0, 0.3))
     coarse, fine = (ConvergingForward(c, exact, g, p) for c in (config, refined_config(config, "edge")))
-    disc = estimate(coarse, fine, np.zeros(1), data)
+    disc = estimate(coarse, fine, np.zeros(1), data, "edge")
 
     def error_rms(h: float) -> float:
         return float(np.sqrt(np.mean((h**p * g) ** 2)))
@@ -111,6 +111,42 @@ def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
     assert np.isclose(np.sqrt(np.mean(sd**2)), error_rms(h / 2), rtol=0.15)
     assert np.isclose(error_rms(disc.suggested_h_edge()) / 1e-3, 0.5)
     assert disc.resolved == (disc.remaining_sigma <= 0.5)
+
+
+class ScaledErrorForward(ConvergingForward):
+    """The exact field plus an error ``scale`` g: a mesh whose error has the shape g."""
+
+    def __init__(self, config, exact: np.ndarray, g: np.ndarray, scale: float):
+        super().__init__(config, exact, g, 0.0)
+        self.scale = scale
+
+    def evaluate_many(self, points):
+        return [self.exact + self.scale * self.g for _ in points]
+
+
+def test_a_quadratic_reference_with_a_share_of_the_error_gives_each_meshs_error():
+    """A linear check mesh with error g and a quadratic reference with the assumed share r of it
+    (same shape): the estimate gives both meshes' errors and extrapolates at 1 / (1 - r),
+    against the closed form."""
+    from inference.criticism.discretisation import error_ratio, estimate, refined_config
+    from skinfem.config import load_config
+
+    config = load_config("paper")
+    r = error_ratio(config, "quadratic")[0]
+    rng = np.random.default_rng(4)
+    xy = np.stack([dic_points(18.0, 1.0, rng)])
+    masks = np.ones(xy.shape[:2], bool)
+    exact = np.stack([np.sin(xy[0] @ [0.2, 0.1])[:, None] * [1e-2, -5e-3, 2e-3]])
+    g = np.stack([np.cos(xy[0] @ [0.1, -0.3])[:, None] * [4e-3, 2e-3, 1e-3]])
+    data = Data(exact, masks, xy, NoiseModel(np.full(3, 1e-3), 2.0, 0.3))
+    coarse = ScaledErrorForward(config, exact, g, 1.0)
+    reference = ScaledErrorForward(refined_config(config, "quadratic"), exact, g, r)
+    disc = estimate(coarse, reference, np.zeros(1), data, "quadratic")
+    g_rms = float(np.sqrt(np.mean(g**2)))
+    assert np.isclose(disc.relative, g_rms / np.sqrt(np.mean(exact**2)))
+    assert np.isclose(disc.sigma, g_rms / 1e-3) and np.isclose(disc.remaining_sigma, r * g_rms / 1e-3)
+    np.testing.assert_allclose(disc.extrapolated * disc.shift, -g, atol=1e-15)  # f_h + a shift = exact
+    assert "30% of the check mesh's" in disc.summary()
 
 
 def test_the_mesh_error_factor_recovers_how_much_larger_the_model_error_is():

@@ -27,6 +27,7 @@ from inference.criticism.discretisation import (
     CorrectedForward,
     DiscretisationError,
     describe_mesh,
+    error_ratio,
     estimate,
     refined_config,
 )
@@ -59,8 +60,8 @@ class CheckSettings:
         gauge: the DIC strain window the measurement was made with.
         spacing: the measured points are thinned to one per square of this side [mm].
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
-        refinement: the refined mesh of that estimate, ``"uniform"`` or ``"edge"`` (see
-            :func:`inference.criticism.discretisation.refined_config`).
+        refinement: the better mesh of that estimate, ``"uniform"``, ``"edge"`` or
+            ``"quadratic"`` (see :func:`inference.criticism.discretisation.refined_config`).
         start: (5,) skin parameters to start the calibration from (None: the emulator's
             posterior mode if an emulator is given, else the best of a few spread points).
     """
@@ -211,6 +212,8 @@ def run_check(
     (Longer than a screen on purpose: the check's phases in order, each timed where it runs,
     then the result's fields by name.)
     """
+    if settings.discretisation:
+        error_ratio(config, settings.refinement)  # a refinement that does not apply: before any FE run
     timings = CheckTimings()
     t0 = time.perf_counter()
     forward = FEForward(
@@ -364,7 +367,7 @@ def compare(
     fine = refined()
     log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
     fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
-    disc = estimate(forward, fine, baseline.x, data)
+    disc = estimate(forward, fine, baseline.x, data, settings.refinement)
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
     # the amplitude starts at 1, away from its optimum: the full number of trial steps

@@ -1,25 +1,32 @@
 """The check's own discretisation error, measured before any physics is blamed.
 
 At the calibrated parameters x the same DIC measurement is computed on the check's mesh
-(size h) and on one refinement of it (h/2 in plane, or only at the membrane edge; twice the
-layers through the thickness, :func:`refined_layers`): shift = f_h/2(x) - f_h(x) at every
-measured point. If the surface strain converges at order p, the error of f_h is about
--shift 2^p / (2^p - 1) and that of f_h/2 about -shift / (2^p - 1). Two meshes do not tell p;
-the check uses the order measured for its element degree under these refinements
-(:data:`OBSERVED_ORDER`, docs/criticism.md §2). The check then
+(size h) and on a better one, shift = f_ref(x) - f_h(x) at every measured point. If the better
+mesh's error is a share r of the check mesh's, with the same shape, the error of f_h is
+-shift / (1 - r) and that of f_ref -shift r / (1 - r). The better mesh is
+
+- one refinement of the check's mesh (h/2 in plane, or only at the membrane edge; twice the
+  layers through the thickness, :func:`refined_layers`): if the surface strain converges at
+  order p, r = 2^-p. Two meshes do not tell p; the check uses the order measured for its
+  element degree under these refinements (:data:`OBSERVED_ORDER`, docs/criticism.md §2); or
+- a quadratic reference mesh (:data:`QUADRATIC_REFERENCE`) for a linear mesh whose refinement
+  would cost more than it and, with one skin layer, does not have the shape of its error
+  (docs/criticism.md §11): r as measured for the paper mesh (:data:`QUADRATIC_REFERENCE_RATIO`).
+
+The check then
 
 - **corrects** its model by a multiple of the shift (:class:`CorrectedForward`: f_h(x') + a
   shift for every x', a two-level correction that treats the shift as constant near x), with
-  the amplitude a calibrated together with the skin parameters (a = 1 is the refined mesh's
-  field, a = 2^p / (2^p - 1) Richardson extrapolation of order p; a refined mesh outside the
-  asymptotic range needs more), and
-- **carries** the remaining error, the refined mesh's (sd = the local RMS of the shift within
-  h of the point, per component, times 1 / (2^p - 1)), correlated over the shift's own
-  correlation length, as a model-form variance next to the noise
+  the amplitude a calibrated together with the skin parameters (a = 1 is the better mesh's
+  field, a = 1 / (1 - r) the extrapolation, for a refinement Richardson's of order p; a
+  refined mesh outside the asymptotic range needs more), and
+- **carries** the remaining error, the better mesh's (sd = the local RMS of the shift within
+  the larger h of the two meshes of the point, per component, times r / (1 - r)), correlated
+  over the shift's own correlation length, as a model-form variance next to the noise
   (:class:`inference.criticism.data.ModelError`), so that a residual the mesh explains is not
   called a missing effect.
 
-If the refined mesh's error is still above the noise, the report says so and names the cell
+If the better mesh's error is still above the noise, the report says so and names the cell
 size at the membrane edge (``mesh.h_edge``), where the error lives, that would bring it to half
 the noise (error proportional to that size to the power p).
 """
@@ -38,13 +45,20 @@ from inference.forward import ForwardModel
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
 
-REFINEMENTS = ("uniform", "edge")
+REFINEMENTS = ("uniform", "edge", "quadratic")
 
 # Observed order of convergence of the DIC surface strain under these refinements, by element
 # degree (docs/criticism.md §2, benchmarks/results/dic_convergence.json): Q1 on `small`, uniform
 # refinement, 39 % -> 16 % from the Q2 reference (1.3); Q2 under membrane-edge refinement
 # 2 -> 1 -> 0.5 mm against the Richardson limit, 1.53 (paper series) and 1.6 (small series).
 OBSERVED_ORDER = {1: 1.3, 2: 1.5}
+# The quadratic reference of a linear mesh (Q2, two skin and four muscle layers, 1 mm cells at the
+# membrane edge; 131,757 dofs on the paper's block) and its error as a share of the paper mesh's,
+# both against the Richardson limit of a Q2 series (benchmarks/results/dic_convergence.json,
+# "paper"): 10.0 % / 33.3 % in the 8-12 mm band, 8.4 % / 28.6 % over all points, 3.5 % / 25.2 %
+# in the far field. The largest share is taken; a coarser linear mesh's share is smaller.
+QUADRATIC_REFERENCE = {"h_membrane": 2.0, "h_far": 4.0, "h_edge": 1.0, "skin_layers": 2, "muscle_layers": 4}
+QUADRATIC_REFERENCE_RATIO = 0.30
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
 
 
@@ -70,8 +84,33 @@ def refined_layers(config: Config) -> dict[str, int]:
 
 def default_refinement(config: Config) -> str:
     """``"edge"`` for a quadratic mesh or one refined at the membrane edge (uniform refinement
-    would multiply its dofs by about 8), else ``"uniform"``."""
-    return "edge" if config.solver.element_degree >= 2 or config.mesh.edge_refined else "uniform"
+    would multiply its dofs by about 8); ``"quadratic"`` for a linear mesh with cells at the
+    membrane edge finer than the quadratic reference's (the paper mesh: its uniform refinement
+    has 348k dofs, the reference 132k); else ``"uniform"``."""
+    if config.solver.element_degree >= 2 or config.mesh.edge_refined:
+        return "edge"
+    return "quadratic" if edge_cell_size(config.mesh) < QUADRATIC_REFERENCE["h_edge"] else "uniform"
+
+
+def error_ratio(config: Config, refinement: str) -> tuple[float, str]:
+    """(r, basis): the better mesh's error as a share of ``config``'s (see module doc), and what
+    that share rests on, in words.
+
+    Raises:
+        ValueError: the quadratic reference for a mesh that is quadratic already.
+    """
+    if refinement == "quadratic":
+        if config.solver.element_degree >= 2:
+            raise ValueError(
+                "the quadratic reference is for linear (Q1) meshes; "
+                "a quadratic mesh is refined at its edge (--refine edge)"
+            )
+        return QUADRATIC_REFERENCE_RATIO, (
+            f"the reference's error taken as {QUADRATIC_REFERENCE_RATIO:.0%} of the check mesh's, "
+            "as measured for the paper mesh"
+        )
+    order = observed_order(config)
+    return 2.0**-order, f"order {order:g} assumed"
 
 
 def refined_config(config: Config, refinement: str = "uniform") -> Config:
@@ -83,9 +122,14 @@ def refined_config(config: Config, refinement: str = "uniform") -> Config:
       The in-plane error lives at the membrane edge (halving every in-plane size of a Q2 mesh
       moves the surface strain as much as halving only its edge cells: 16.4 % vs 16.5 %,
       docs/criticism.md), so this is the affordable refinement of a fine or quadratic mesh
-      (uniform refinement multiplies its dofs by about 8).
+      (uniform refinement multiplies its dofs by about 8);
+    - ``"quadratic"``: not a refinement but :data:`QUADRATIC_REFERENCE`, for a linear mesh
+      (its material, membrane and solver settings kept).
     """
     m = config.mesh
+    if refinement == "quadratic":
+        error_ratio(config, refinement)  # a linear mesh only
+        return config.with_changes(mesh=QUADRATIC_REFERENCE, solver={"element_degree": 2, "quadrature_degree": 4})
     layers = refined_layers(config)
     if refinement == "edge":
         return config.with_changes(mesh={"h_edge": edge_cell_size(m) / 2, **layers})
@@ -110,26 +154,31 @@ class DiscretisationError:
     """The two-mesh estimate at the calibrated parameters (see module doc).
 
     Attributes:
-        mesh, refined: descriptions of the check's mesh and of its refinement.
-        h_membrane: the check mesh's in-plane size under the membrane [mm] (the radius of the
-            local error envelope).
+        mesh, refined: descriptions of the check's mesh and of the better one (its refinement
+            or the quadratic reference).
+        radius: radius of the local error envelope [mm]: the larger in-plane size under the
+            membrane of the two meshes.
         h_edge: its in-plane size at the membrane edge [mm], which governs the error.
-        shift: (n_obs, n_pts, 3) f_refined - f_check at the points [strain].
-        order: the order of convergence assumed (:func:`observed_order`).
-        relative: RMS of the check mesh's error (|shift| 2^p / (2^p - 1)) / RMS of the
-            measured field.
+        shift: (n_obs, n_pts, 3) f_better - f_check at the points [strain].
+        order: the order of convergence of the check mesh's elements (:func:`observed_order`).
+        ratio: the better mesh's error as a share of the check mesh's (:func:`error_ratio`).
+        basis: what that share rests on, in words.
+        relative: RMS of the check mesh's error (|shift| / (1 - ratio)) / RMS of the measured
+            field.
         sigma: RMS of the check mesh's error in noise sd units.
-        seconds: wall time of the refined simulation(s).
+        seconds: wall time of the better mesh's simulation(s).
         amplitude, amplitude_sd: the multiple of the shift the calibrated, corrected model uses
             (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
     """
 
     mesh: str
     refined: str
-    h_membrane: float
+    radius: float
     h_edge: float
     shift: np.ndarray
     order: float
+    ratio: float
+    basis: str
     relative: float
     sigma: float
     seconds: float
@@ -138,23 +187,28 @@ class DiscretisationError:
 
     @property
     def remaining_factor(self) -> float:
-        """The refined mesh's error per unit shift, 1 / (2^p - 1): what the corrected model
-        carries (its share of the check mesh's error is 2^-p)."""
-        return 1.0 / (2.0**self.order - 1.0)
+        """The better mesh's error per unit shift, r / (1 - r): what the corrected model carries
+        (for a refinement at order p, 1 / (2^p - 1))."""
+        return self.ratio / (1.0 - self.ratio)
+
+    @property
+    def extrapolated(self) -> float:
+        """The amplitude of the shift that extrapolates to the converged field, 1 / (1 - r)."""
+        return 1.0 / (1.0 - self.ratio)
 
     @property
     def remaining_sigma(self) -> float:
         """RMS of the corrected model's remaining error in noise sd units."""
-        return self.sigma / 2.0**self.order
+        return self.sigma * self.ratio
 
     @property
     def remaining_relative(self) -> float:
         """RMS of the corrected model's remaining error / RMS of the measured field."""
-        return self.relative / 2.0**self.order
+        return self.relative * self.ratio
 
     def sd(self, xy: np.ndarray, masks: np.ndarray) -> np.ndarray:
         """(n_obs, n_pts, 3) sd of the corrected model's remaining error: the local RMS of the
-        shift within ``h_membrane`` of each point (xy (n_obs, n_pts, 2), masks (n_obs, n_pts))
+        shift within :attr:`radius` of each point (xy (n_obs, n_pts, 2), masks (n_obs, n_pts))
         times :attr:`remaining_factor`.
 
         A local envelope, not |shift| itself: the shift changes sign where the two meshes' fields
@@ -162,7 +216,7 @@ class DiscretisationError:
         out = np.zeros_like(self.shift)
         for o, m in enumerate(masks):
             points = xy[o, m]
-            near = cKDTree(points).query_ball_point(points, r=self.h_membrane)
+            near = cKDTree(points).query_ball_point(points, r=self.radius)
             squares = self.shift[o, m] ** 2
             out[o, m] = np.sqrt([squares[i].mean(axis=0) for i in near])
         return out * self.remaining_factor
@@ -174,7 +228,7 @@ class DiscretisationError:
         would make the calibrated parameters' Laplace sd too small."""
         sd = self.sd(xy, masks)
         standardised = np.divide(self.shift, sd, out=np.zeros_like(sd), where=sd > 0)
-        return ModelError(sd, *correlation_fit(standardised, xy, masks, self.h_membrane))
+        return ModelError(sd, *correlation_fit(standardised, xy, masks, self.radius))
 
     @property
     def resolved(self) -> bool:
@@ -191,22 +245,22 @@ class DiscretisationError:
             f"Discretisation error of the check's mesh ({self.mesh}) at the calibrated parameters: "
             f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS "
             f"(two-mesh estimate with {self.refined}); "
-            f"the model is corrected by a fitted multiple of the refined mesh's shift and its remaining error "
-            f"({self.remaining_sigma:.1f} sigma, order {self.order:g} assumed) is carried next to the noise."
+            f"the model is corrected by a fitted multiple of the shift and its remaining error "
+            f"({self.remaining_sigma:.1f} sigma, {self.basis}) is carried next to the noise."
         )
         if self.amplitude is not None:
             text += (
                 f" The measurement puts the correction at {self.amplitude:.2f} ± {self.amplitude_sd:.2f} times "
-                f"the shift (1: the refined mesh's field; {2**self.order / (2**self.order - 1):.2f}: extrapolation "
-                f"of order {self.order:g}"
-                f"{'; above 2: the refined mesh is itself far from converged' if self.amplitude > 2.5 else ''})."
+                f"the shift (1: the better mesh's field; {self.extrapolated:.2f}: the extrapolation"
+                f"{'; above 2: the better mesh is itself far from converged' if self.amplitude > 2.5 else ''})."
             )
         if not self.resolved:
             text += (
                 f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
                 f"The error lives at the membrane edge: at order {self.order:g} a mesh with cells of "
                 f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it; quadratic elements "
-                "(solver.element_degree = 2) with two skin layers converge faster (docs/criticism.md)."
+                "(solver.element_degree = 2) with two skin layers converge faster "
+                "(`--config check`, docs/criticism.md)."
             )
         return text
 
@@ -236,8 +290,9 @@ def correlation_fit(field: np.ndarray, xy: np.ndarray, masks: np.ndarray, h: flo
     return best[1], best[2]
 
 
-def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data) -> DiscretisationError:
-    """Two-mesh estimate at x; ``coarse``/``fine`` must measure the same points of ``data``.
+def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data, refinement: str) -> DiscretisationError:
+    """Two-mesh estimate at x; ``coarse``/``fine`` must measure the same points of ``data``;
+    ``fine`` is ``coarse``'s mesh after ``refinement`` (:func:`refined_config`).
 
     Raises:
         ValueError: the refined model does not converge at x.
@@ -245,19 +300,21 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data) -> D
     start = time.perf_counter()
     f_coarse, f_fine = coarse(x), fine(x)
     if f_fine is None:
-        raise ValueError("the refined mesh does not converge at the calibrated parameters")
+        raise ValueError("the discretisation estimate's better mesh does not converge at the calibrated parameters")
     shift = np.where(data.masks[..., None], f_fine - f_coarse, 0.0)
     m = data.masks
     measured_rms = float(np.sqrt(np.mean(data.fields[m] ** 2)))
-    order = observed_order(coarse.config)
-    error = shift[m] * 2**order / (2**order - 1)
+    ratio, basis = error_ratio(coarse.config, refinement)
+    error = shift[m] / (1.0 - ratio)
     return DiscretisationError(
         mesh=describe_mesh(coarse.config),
         refined=describe_mesh(fine.config),
-        h_membrane=coarse.config.mesh.h_membrane,
+        radius=max(coarse.config.mesh.h_membrane, fine.config.mesh.h_membrane),
         h_edge=edge_cell_size(coarse.config.mesh),
         shift=shift,
-        order=order,
+        order=observed_order(coarse.config),
+        ratio=ratio,
+        basis=basis,
         relative=float(np.sqrt(np.mean(error**2)) / measured_rms),
         sigma=float(np.sqrt(np.mean((error / data.noise.sd) ** 2))),
         seconds=time.perf_counter() - start,
@@ -271,11 +328,12 @@ AMPLITUDE_BOUNDS = (0.0, 4.0)
 class CorrectedForward(ForwardModel):
     """``base`` corrected by a multiple ``a`` of a fixed field ``shift`` (n_obs, n_pts, 3):
     f_h(x) + a shift, with ``a`` the last parameter (``AMPLITUDE``, in ``AMPLITUDE_BOUNDS``,
-    null 1: the refined mesh's field). Richardson extrapolation of order p puts the converged
-    field at a = 2^p / (2^p - 1) (first order: 2, high order: 1); a refined mesh that is itself
-    outside the asymptotic range needs more. Calibrated with the skin parameters, ``a`` lets the
-    measurement say how far the mesh is from converged along the direction refinement showed,
-    so that a candidate effect must explain more than a larger or smaller discretisation error."""
+    null 1: the better mesh's field). Extrapolation puts the converged field at a = 1 / (1 - r)
+    (Richardson's of order p for a refinement: 2^p / (2^p - 1), first order 2, high order 1); a
+    better mesh that is itself outside the asymptotic range needs more. Calibrated with the skin
+    parameters, ``a`` lets the measurement say how far the mesh is from converged along the
+    direction the better mesh showed, so that a candidate effect must explain more than a larger
+    or smaller discretisation error."""
 
     def __init__(self, base: ForwardModel, shift: np.ndarray):
         self.base, self.shift = base, shift

@@ -409,6 +409,8 @@ def report_dict(result: CheckResult) -> dict:
             "relative": result.discretisation.relative,
             "sigma": result.discretisation.sigma,
             "order": result.discretisation.order,
+            "ratio": result.discretisation.ratio,
+            "basis": result.discretisation.basis,
             "remaining_sigma": result.discretisation.remaining_sigma,
             "resolved": result.discretisation.resolved,
             "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
