@@ -80,6 +80,16 @@ class ConvergingForward(ForwardModel):
         return [self.exact + edge_cell_size(self.config.mesh) ** self.order * self.g for _ in points]
 
 
+def smooth_field_and_error(seed: int):
+    """A DIC point cloud (xy (1, n, 2), masks), a smooth exact field and a smooth error shape g
+    (1, n, 3) [strain], and the exact field as data with a 1e-3 noise model."""
+    xy = np.stack([dic_points(18.0, 1.0, np.random.default_rng(seed))])
+    masks = np.ones(xy.shape[:2], bool)
+    exact = np.stack([np.sin(xy[0] @ [0.2, 0.1])[:, None] * [1e-2, -5e-3, 2e-3]])
+    g = np.stack([np.cos(xy[0] @ [0.1, -0.3])[:, None] * [4e-3, 2e-3, 1e-3]])
+    return xy, masks, exact, g, Data(exact, masks, xy, NoiseModel(np.full(3, 1e-3), 2.0, 0.3))
+
+
 def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
     """Meshes converging at the order the check assumes for Q2 (1.5): from the check mesh and its
     edge refinement alone, the estimate gives the check mesh's error, the refined (carried)
@@ -90,12 +100,7 @@ def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
 
     config = load_config("small").with_changes(solver={"element_degree": 2}, mesh={"h_edge": 1.0})
     p = observed_order(config)
-    rng = np.random.default_rng(3)
-    xy = np.stack([dic_points(18.0, 1.0, rng)])
-    masks = np.ones(xy.shape[:2], bool)
-    exact = np.stack([np.sin(xy[0] @ [0.2, 0.1])[:, None] * [1e-2, -5e-3, 2e-3]])
-    g = np.stack([np.cos(xy[0] @ [0.1, -0.3])[:, None] * [4e-3, 2e-3, 1e-3]])
-    data = Data(exact, masks, xy, NoiseModel(np.full(3, 1e-3), 2.0, 0.3))
+    xy, masks, exact, g, data = smooth_field_and_error(3)
     coarse, fine = (ConvergingForward(c, exact, g, p) for c in (config, refined_config(config, "edge")))
     disc = estimate(coarse, fine, np.zeros(1), data, "edge")
 
@@ -133,12 +138,7 @@ def test_a_quadratic_reference_with_a_share_of_the_error_gives_each_meshs_error(
 
     config = load_config("paper")
     r = error_ratio(config, "quadratic")[0]
-    rng = np.random.default_rng(4)
-    xy = np.stack([dic_points(18.0, 1.0, rng)])
-    masks = np.ones(xy.shape[:2], bool)
-    exact = np.stack([np.sin(xy[0] @ [0.2, 0.1])[:, None] * [1e-2, -5e-3, 2e-3]])
-    g = np.stack([np.cos(xy[0] @ [0.1, -0.3])[:, None] * [4e-3, 2e-3, 1e-3]])
-    data = Data(exact, masks, xy, NoiseModel(np.full(3, 1e-3), 2.0, 0.3))
+    xy, masks, exact, g, data = smooth_field_and_error(4)
     coarse = ScaledErrorForward(config, exact, g, 1.0)
     reference = ScaledErrorForward(refined_config(config, "quadratic"), exact, g, r)
     disc = estimate(coarse, reference, np.zeros(1), data, "quadratic")
