@@ -630,6 +630,35 @@ def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_a
     assert d.best is not None and d.best.effect == "pre_stretch"
 
 
+def test_a_model_error_larger_than_carried_is_found_as_such_and_not_blamed_on_an_effect(taylor_at_truth):
+    """Data whose model error is 1.5 times the carried one (drawn from the carried correlated
+    field, 2 noise sd), on the linearised FE model: the residual is structured, the likelihood
+    puts the carried error at 1.5 times its estimate (within 0.3) and no effect is named, in
+    each of 3 draws; the verdict points at the mesh. A real pre-stretch on top is still named."""
+    from inference.criticism.data import ModelError
+
+    forward, xy = taylor_at_truth
+    noise, masks = NoiseModel(**NOISE), np.ones((1, len(xy)), bool)
+    carried = ModelError(np.full((1, len(xy), 3), 2 * NOISE["sd"]), 3.0, 0.2)
+    rng = np.random.default_rng(5)
+    x_true = forward.x0.copy()
+    for name, value in PRESTRETCH.items():
+        x_true[forward.names.index(name)] = value
+    for _ in range(3):
+        y = forward.f0 + 1.5 * carried.sample(xy, 0, masks[0], (1,), rng) + noise.sample(xy, (1,), rng)
+        data = Data(y, masks, xy[None], noise, carried)
+        cal = calibrate(forward, data, forward.x0, list(range(5)), max_iterations=30)
+        d = diagnose(forward, cal, data, list(EFFECTS), 10.0, 4.0, confirm=1, carried_sigma=2.0, max_iterations=30)
+        assert d.metrics.structured and d.best is None
+        assert d.larger_model_error.factor == pytest.approx(1.5, abs=0.3)
+        assert "may be the mesh's" in d.text
+    with_effect = Data(y + forward(x_true) - forward.f0, masks, xy[None], noise, carried)
+    cal = calibrate(forward, with_effect, forward.x0, list(range(5)), max_iterations=30)
+    d = diagnose(forward, cal, with_effect, list(EFFECTS), 10.0, 4.0, confirm=1, carried_sigma=2.0, max_iterations=30)
+    assert d.best is not None and d.best.effect == "pre_stretch"
+    assert d.best.delta_bic > d.larger_model_error.delta_bic
+
+
 def test_the_corrected_models_jacobian_holds_the_shift_as_the_amplitudes_column(taylor_at_truth):
     from inference.criticism.discretisation import AMPLITUDE, CorrectedForward
 

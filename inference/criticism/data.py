@@ -188,17 +188,30 @@ class Data:
 
     def chi2_of_noise_factor(self, model_fields: np.ndarray) -> Callable[[float], float]:
         """chi^2(s) of the residual when the stated noise sd is multiplied by s and the carried
-        model error kept (:meth:`NoiseModel.noise_scaling`: one decomposition for every s)."""
+        model error kept (:meth:`model_error_spectrum`: one decomposition for every s)."""
         if self.model_error is None:
             r = stack(self.whitened_residual(model_fields), self.masks)
             return lambda s: float(r @ r) / s**2
+        z, mu = self.model_error_spectrum(model_fields)
+        return lambda s: float(np.sum(z**2 / (s**2 + mu)))
+
+    def model_error_spectrum(self, model_fields: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(z, mu), each (n,), of the residual ``fields - model_fields`` (n_obs, n_pts, 3): with
+        the stated noise sd times s and the carried model error times k its chi^2 is
+        sum z^2 / (s^2 + k^2 mu), and the log-determinant of that covariance is
+        sum log(s^2 + k^2 mu) plus a constant (:meth:`NoiseModel.noise_scaling`).
+
+        Raises:
+            ValueError: the data carry no model error."""
+        if self.model_error is None:
+            raise ValueError("no model error is carried")
         error, parts = self.model_error, []
         correlation = (error.length, error.nugget)
         for o, mask in enumerate(self.masks):
             residual = (self.fields - model_fields)[o, mask]
             parts.append(self.noise.noise_scaling(residual, self.xy[o, mask], error.sd[o, mask], correlation))
         z, mu = (np.concatenate(a) for a in zip(*parts))
-        return lambda s: float(np.sum(z**2 / (s**2 + mu)))
+        return z, mu
 
     def whiten(self, fields: np.ndarray) -> np.ndarray:
         """Stacked whitened (n,) of any (n_obs, n_pts, 3) field difference."""

@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 
 STRONG_EVIDENCE = 6.0  # Delta BIC above which a candidate is reported (Kass & Raftery: strong)
 MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess residual
+MAX_MESH_FACTOR = 10.0  # the largest multiple of the carried model error the other explanation tries
 NOISE_STRUCTURE_Z = 3.0  # |Moran z| below which a residual has the stated noise's spatial structure
 
 
@@ -230,6 +231,33 @@ def extend(forward: ForwardModel, cal: Calibration, data: Data, effect: str, **k
     return calibrate(forward, data, x0, cal.free + added, label=f"{cal.label} + {effect}", **kwargs)
 
 
+@dataclass(frozen=True)
+class LargerModelError:
+    """The other explanation of a structured residual when a model error (the mesh's) is carried:
+    that error is ``factor`` times its estimate (one parameter), with ``delta_bic`` against the
+    estimate itself (:func:`larger_model_error`)."""
+
+    factor: float
+    delta_bic: float
+
+
+def larger_model_error(cal: Calibration, data: Data) -> LargerModelError | None:
+    """The multiple k of the carried model error that maximises the Gaussian likelihood of
+    ``cal``'s residual, -2 ln L(k) = sum z^2 / (1 + k^2 mu) + log(1 + k^2 mu) + const
+    (:meth:`Data.model_error_spectrum`), k in [0, ``MAX_MESH_FACTOR``], and its Delta BIC
+    against k = 1 (one parameter; the skin parameters not refitted, so a lower bound). A
+    candidate effect must beat it to be named. None when no model error is carried."""
+    if data.model_error is None:
+        return None
+    z, mu = data.model_error_spectrum(cal.model_fields)
+
+    def deviance(k: float) -> float:
+        return float(np.sum(z**2 / (1.0 + k**2 * mu) + np.log1p(k**2 * mu)))
+
+    best = optimize.minimize_scalar(deviance, bounds=(0.0, MAX_MESH_FACTOR), method="bounded")
+    return LargerModelError(float(best.x), deviance(1.0) - float(best.fun) - math.log(len(z)))
+
+
 @dataclass
 class Diagnosis:
     metrics: ResidualMetrics
@@ -240,6 +268,7 @@ class Diagnosis:
     text: str
     fe_runs: int
     seconds: float
+    larger_model_error: LargerModelError | None = None
 
     @property
     def best(self) -> CandidateScore | None:
@@ -281,10 +310,16 @@ def diagnose(
             s.estimate = {q: float(fit.x[forward.names.index(q)]) for q in s.parameters}
             s.fitted = True
         scores.sort(key=lambda s: -s.delta_bic)
+    larger = larger_model_error(cal, data) if metrics.structured else None
     for s in scores:
-        s.explains = metrics.structured and s.delta_bic > STRONG_EVIDENCE and s.share_explained >= MIN_SHARE
-    text = verdict(metrics, scores, regions, hotspot, carried_sigma, added)
-    return Diagnosis(metrics, regions, hotspot, scores, fits, text, forward.runs - runs0, time.perf_counter() - start)
+        s.explains = (
+            metrics.structured
+            and s.delta_bic > max(STRONG_EVIDENCE, larger.delta_bic if larger else -math.inf)
+            and s.share_explained >= MIN_SHARE
+        )
+    text = verdict(metrics, scores, regions, hotspot, carried_sigma, added, larger)
+    runs, seconds = forward.runs - runs0, time.perf_counter() - start
+    return Diagnosis(metrics, regions, hotspot, scores, fits, text, runs, seconds, larger)
 
 
 def mesh_error_factor(chi2_per_dof: float, carried_sigma: float) -> float:
@@ -302,13 +337,15 @@ def verdict(
     hotspot: Hotspot,
     carried_sigma: float = 0.0,
     added: Sequence[str] = (),
+    larger: LargerModelError | None = None,
 ) -> str:
     """One paragraph: is the residual noise, where is it not, which candidate explains it.
 
     A carried discretisation error above half the noise (``carried_sigma`` > 0.5, RMS in noise
     sd) turns "something outside the registry is missing" into "rerun on a finer mesh first",
     with how many times its estimate the mesh's error would have to be to explain the residual
-    (:func:`mesh_error_factor`)."""
+    (:func:`mesh_error_factor`). A candidate that a larger carried error explains as well
+    (``larger``, :func:`larger_model_error`) is said to be not enough, with that comparison."""
     if not metrics.structured:
         return (
             f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
@@ -325,6 +362,11 @@ def verdict(
     best = next((s for s in scores if s.explains), None)
     if best is None:
         lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
+        if scores and larger and STRONG_EVIDENCE < scores[0].delta_bic <= larger.delta_bic:
+            lead = lead[:-1] + (
+                f": the carried model error at {larger.factor:.1f} times its estimate explains the residual "
+                f"as well (Delta BIC = +{larger.delta_bic:.1f})."
+            )
         if carried_sigma > MESH_RESOLVED_SIGMA:
             factor = mesh_error_factor(metrics.chi2_per_dof, carried_sigma)
             return (

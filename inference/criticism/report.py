@@ -428,6 +428,7 @@ def report_dict(result: CheckResult) -> dict:
         "regions": [dataclasses.asdict(g) for g in d.regions],
         "hotspot": dataclasses.asdict(d.hotspot),
         "candidates": [dict(vars(s)) for s in d.scores],
+        "larger_model_error": None if d.larger_model_error is None else dataclasses.asdict(d.larger_model_error),
         "next_round": None
         if result.next_round is None
         else {
@@ -436,6 +437,9 @@ def report_dict(result: CheckResult) -> dict:
             "regions": [dataclasses.asdict(g) for g in result.next_round.regions],
             "hotspot": dataclasses.asdict(result.next_round.hotspot),
             "candidates": [dict(vars(s)) for s in result.next_round.scores],
+            "larger_model_error": None
+            if result.next_round.larger_model_error is None
+            else dataclasses.asdict(result.next_round.larger_model_error),
         },
         "versions": [
             {
