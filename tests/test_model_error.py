@@ -138,7 +138,7 @@ def test_a_quadratic_reference_with_a_share_of_the_error_gives_each_meshs_error(
 
     config = load_config("paper")
     r = error_ratio(config, "quadratic")[0]
-    xy, masks, exact, g, data = smooth_field_and_error(4)
+    _, _, exact, g, data = smooth_field_and_error(4)
     coarse = ScaledErrorForward(config, exact, g, 1.0)
     reference = ScaledErrorForward(refined_config(config, "quadratic"), exact, g, r)
     disc = estimate(coarse, reference, np.zeros(1), data, "quadratic")
