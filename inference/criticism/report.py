@@ -12,7 +12,7 @@ import numpy as np
 
 from inference.criticism.calibration import Estimate
 from inference.criticism.check import CheckResult, CheckTimings
-from inference.criticism.diagnosis import CandidateScore
+from inference.criticism.diagnosis import CandidateScore, Diagnosis
 from inference.criticism.metrics import Hotspot, RegionResidual, ResidualMetrics
 from inference.plots import field_grid, pyplot, save_figure
 from skinfem.effects import EFFECTS, get_effect
@@ -386,6 +386,17 @@ def finite_or_null(value):
     return value
 
 
+def diagnosis_dict(d: Diagnosis) -> dict:
+    """A diagnosis's regions, hotspot, candidates and competing larger model error, as report.json
+    states them (for the baseline and for the next round alike)."""
+    return {
+        "regions": [dataclasses.asdict(g) for g in d.regions],
+        "hotspot": dataclasses.asdict(d.hotspot),
+        "candidates": [dict(vars(s)) for s in d.scores],
+        "larger_model_error": None if d.larger_model_error is None else dataclasses.asdict(d.larger_model_error),
+    }
+
+
 def report_dict(result: CheckResult) -> dict:
     """Everything the report states, machine-readable.
 
@@ -425,21 +436,13 @@ def report_dict(result: CheckResult) -> dict:
             "used_sd": result.data.noise.sd.tolist(),
         },
         "failed_runs": [{"x": dict(zip(result.names, map(float, f.x))), "message": f.message} for f in result.failures],
-        "regions": [dataclasses.asdict(g) for g in d.regions],
-        "hotspot": dataclasses.asdict(d.hotspot),
-        "candidates": [dict(vars(s)) for s in d.scores],
-        "larger_model_error": None if d.larger_model_error is None else dataclasses.asdict(d.larger_model_error),
+        **diagnosis_dict(d),
         "next_round": None
         if result.next_round is None
         else {
             "after": result.versions[-1].calibration.label,
             "verdict": result.next_round.text,
-            "regions": [dataclasses.asdict(g) for g in result.next_round.regions],
-            "hotspot": dataclasses.asdict(result.next_round.hotspot),
-            "candidates": [dict(vars(s)) for s in result.next_round.scores],
-            "larger_model_error": None
-            if result.next_round.larger_model_error is None
-            else dataclasses.asdict(result.next_round.larger_model_error),
+            **diagnosis_dict(result.next_round),
         },
         "versions": [
             {
