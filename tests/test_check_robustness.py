@@ -155,6 +155,26 @@ def test_an_error_on_one_rank_ends_every_rank_at_once(where, mesh_dir, tmp_path)
     assert not (tmp_path / "report" / "report.md").exists()
 
 
+@pytest.mark.mpi
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+def test_a_refinement_that_does_not_apply_is_said_once_under_mpi(tmp_path):
+    """`--refine quadratic` on a quadratic mesh under `mpirun -n 2`: both ranks end with exit 2
+    and one line between them, before any FE run, and nothing is written."""
+    measurement = _measurement(tmp_path / "m.csv")
+    command = ["check", "--config", "check", "--refine", "quadratic", "--measurement", measurement]
+    res = subprocess.run(
+        [MPIRUN, "-n", "2", sys.executable, "-m", "inference", *map(str, command), "--out", str(tmp_path / "report")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=skinid_env(),
+    )
+    lines = [line for line in res.stderr.splitlines() if "error" in line]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+    assert "the quadratic reference is for linear (Q1) meshes" in lines[0]
+    assert not (tmp_path / "report").exists()
+
+
 def corner_forward(config, mesh_dir, alpha):
     """The serial FE forward model (all effects, 2 increments) of one design on a 3 mm grid."""
     from mpi4py import MPI

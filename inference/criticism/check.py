@@ -37,7 +37,7 @@ from inference.observations import Measurement, map_to_cells
 from skinfem.config import Config
 from skinfem.dic import StrainGauge
 from skinfem.effects import EFFECTS, get_effect
-from skinfem.parallel import on_root
+from skinfem.parallel import collective, on_root
 from surrogate.emulator import Emulator
 
 log = logging.getLogger(__name__)
@@ -212,8 +212,8 @@ def run_check(
     (Longer than a screen on purpose: the check's phases in order, each timed where it runs,
     then the result's fields by name.)
     """
-    if settings.discretisation:
-        error_ratio(config, settings.refinement)  # a refinement that does not apply: before any FE run
+    if settings.discretisation:  # a refinement that does not apply: before any FE run, said once
+        collective(comm, lambda: error_ratio(config, settings.refinement), (ValueError,))
     timings = CheckTimings()
     t0 = time.perf_counter()
     forward = FEForward(
