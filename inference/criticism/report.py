@@ -124,7 +124,8 @@ def error_falls_plot(result: CheckResult, path: Path) -> Path:
 
 
 def candidates_plot(result: CheckResult, path: Path) -> Path:
-    """Delta BIC of every candidate (symlog), coloured by whether it explains the residual."""
+    """Delta BIC of every candidate (symlog), coloured by whether it explains the residual, with
+    the strong-evidence threshold and the competing larger model error when there is one."""
     plt = pyplot()
     scores = result.diagnosis.scores
     fig, ax = plt.subplots(figsize=(7.5, 0.6 * len(scores) + 1.6))
@@ -132,6 +133,10 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     colors = ["C2" if s.explains else "0.6" for s in scores]
     ax.barh(y, [s.delta_bic for s in scores], color=colors)
     ax.axvline(6, color="k", ls="--", lw=1, label="strong evidence (ΔBIC = 6)")
+    larger = result.diagnosis.larger_model_error
+    if larger is not None:  # what a candidate must also beat (diagnosis.larger_model_error)
+        label = f"the carried mesh error × {larger.factor:.2f} (ΔBIC = {larger.delta_bic:+.0f})"
+        ax.axvline(larger.delta_bic, color="C3", ls=":", lw=1.5, label=label)
     ax.set_xscale("symlog", linthresh=10)
     ax.set_yticks(
         y,
@@ -140,7 +145,7 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     )
     ax.set_xlabel("ΔBIC of adding the effect [-] (> 0 favours it)")
     ax.set_title("which effect is missing (green: explains the residual)", fontsize=10)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower right")  # the bars start at the top
     return save_figure(fig, path)
 
 
