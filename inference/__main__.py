@@ -225,12 +225,13 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--refine",
-        choices=["auto", "uniform", "edge", "quadratic"],
+        choices=["auto", "uniform", "edge", "quadratic", "converged"],
         default="auto",
         help="the estimate's better mesh: every size halved, or only the membrane-edge "
         "cells (for fine or quadratic meshes), layers doubled in both; or a quadratic reference mesh "
-        "(Q2, 1 mm edge cells) for a linear mesh. auto: edge for a quadratic mesh or one refined at "
-        "the membrane edge, quadratic for a linear mesh with edge cells under 1 mm (paper), else uniform",
+        "for a linear mesh (Q2, 1 mm edge cells; converged: 0.5 mm, dearer, a third of the error). "
+        "auto: edge for a quadratic mesh or one refined at the membrane edge, quadratic for a linear "
+        "mesh with edge cells under 1 mm (paper), else uniform",
     )
     parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
     parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")

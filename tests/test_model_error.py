@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from inference.criticism import Data, NoiseModel, calibrate
 from inference.criticism.data import ModelError
-from inference.criticism.diagnosis import mesh_error_factor
 from inference.criticism.discretisation import correlation_fit
 from inference.forward import ForwardModel
 from inference.synthetic import dic_points
@@ -147,15 +145,3 @@ def test_a_quadratic_reference_with_a_share_of_the_error_gives_each_meshs_error(
     assert np.isclose(disc.sigma, g_rms / 1e-3) and np.isclose(disc.remaining_sigma, r * g_rms / 1e-3)
     np.testing.assert_allclose(disc.extrapolated * disc.shift, -g, atol=1e-15)  # f_h + a shift = exact
     assert "30% of the check mesh's" in disc.summary()
-
-
-def test_the_mesh_error_factor_recovers_how_much_larger_the_model_error_is():
-    """Residuals of noise (sd 1) plus a model error k times the carried one (sd k c), whitened by
-    the carried total sqrt(1 + c^2) as the check does: chi^2/dof gives back k (simulated, not the
-    formula's own algebra)."""
-    rng = np.random.default_rng(3)
-    c = 1.6
-    for k in (0.0, 1.0, 2.0, 3.0):
-        residual = rng.normal(0, 1, 200_000) + rng.normal(0, k * c, 200_000)
-        chi2_per_dof = np.mean(residual**2) / (1 + c**2)
-        assert mesh_error_factor(chi2_per_dof, c) == pytest.approx(k, abs=0.03)

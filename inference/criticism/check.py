@@ -60,8 +60,8 @@ class CheckSettings:
         gauge: the DIC strain window the measurement was made with.
         spacing: the measured points are thinned to one per square of this side [mm].
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
-        refinement: the better mesh of that estimate, ``"uniform"``, ``"edge"`` or
-            ``"quadratic"`` (see :func:`inference.criticism.discretisation.refined_config`).
+        refinement: the better mesh of that estimate, ``"uniform"``, ``"edge"``, ``"quadratic"``
+            or ``"converged"`` (see :func:`inference.criticism.discretisation.refined_config`).
         start: (5,) skin parameters to start the calibration from (None: the emulator's
             posterior mode if an emulator is given, else the best of a few spread points).
     """

@@ -322,14 +322,6 @@ def diagnose(
     return Diagnosis(metrics, regions, hotspot, scores, fits, text, runs, seconds, larger)
 
 
-def mesh_error_factor(chi2_per_dof: float, carried_sigma: float) -> float:
-    """How many times its estimate the carried model error (RMS ``carried_sigma`` noise sd) would
-    have to be for the residual to be noise and model error alone: the k with
-    1 + (k c)^2 = chi2_per_dof (1 + c^2) (0 when the residual is smaller than expected)."""
-    c2 = carried_sigma**2
-    return math.sqrt(max(chi2_per_dof * (1.0 + c2) - 1.0, 0.0) / c2)
-
-
 def verdict(
     metrics: ResidualMetrics,
     scores: list[CandidateScore],
@@ -344,7 +336,7 @@ def verdict(
     A carried discretisation error above half the noise (``carried_sigma`` > 0.5, RMS in noise
     sd) turns "something outside the registry is missing" into "rerun on a finer mesh first",
     with how many times its estimate the mesh's error would have to be to explain the residual
-    (:func:`mesh_error_factor`). A candidate that a larger carried error explains as well
+    (``larger``, :func:`larger_model_error`). A candidate that a larger carried error explains as well
     (``larger``, :func:`larger_model_error`) is said to be not enough, with that comparison."""
     if not metrics.structured:
         return (
@@ -368,12 +360,11 @@ def verdict(
                 f"as well (Delta BIC = +{larger.delta_bic:.1f})."
             )
         if carried_sigma > MESH_RESOLVED_SIGMA:
-            factor = mesh_error_factor(metrics.chi2_per_dof, carried_sigma)
+            factor = f" (it would take the mesh's error at {larger.factor:.1f} times its estimate)" if larger else ""
             return (
                 text + " No candidate explains the residual." + lead + " The check's own discretisation error "
-                f"exceeds the noise, so this structure may be the mesh's (it would take the mesh's error at "
-                f"{factor:.1f} times its estimate): rerun on a finer mesh before concluding "
-                "that something outside the registry is missing."
+                f"exceeds the noise, so this structure may be the mesh's{factor}: rerun on a finer mesh before "
+                "concluding that something outside the registry is missing."
             )
         return text + " No candidate explains the residual." + lead + " Something outside the registry is missing."
     text += f" Most likely missing: {best.summary()}."

@@ -9,9 +9,10 @@ mesh's error is a share r of the check mesh's, with the same shape, the error of
   layers through the thickness, :func:`refined_layers`): if the surface strain converges at
   order p, r = 2^-p. Two meshes do not tell p; the check uses the order measured for its
   element degree under these refinements (:data:`OBSERVED_ORDER`, docs/criticism.md §2); or
-- a quadratic reference mesh (:data:`QUADRATIC_REFERENCE`) for a linear mesh whose refinement
-  would cost more than it and, with one skin layer, does not have the shape of its error
-  (docs/criticism.md §11): r as measured for the paper mesh (:data:`QUADRATIC_REFERENCE_RATIO`).
+- a quadratic reference mesh (:data:`REFERENCES`: ``"quadratic"`` with 1 mm cells at the membrane
+  edge, ``"converged"`` with 0.5 mm) for a linear mesh whose refinement would cost more than it
+  and, with one skin layer, does not have the shape of its error (docs/criticism.md §11): r as
+  measured for the paper mesh.
 
 The check then
 
@@ -45,20 +46,41 @@ from inference.forward import ForwardModel
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
 
-REFINEMENTS = ("uniform", "edge", "quadratic")
-
 # Observed order of convergence of the DIC surface strain under these refinements, by element
 # degree (docs/criticism.md §2, benchmarks/results/dic_convergence.json): Q1 on `small`, uniform
 # refinement, 39 % -> 16 % from the Q2 reference (1.3); Q2 under membrane-edge refinement
 # 2 -> 1 -> 0.5 mm against the Richardson limit, 1.53 (paper series) and 1.6 (small series).
 OBSERVED_ORDER = {1: 1.3, 2: 1.5}
-# The quadratic reference of a linear mesh (Q2, two skin and four muscle layers, 1 mm cells at the
-# membrane edge; 131,757 dofs on the paper's block) and its error as a share of the paper mesh's,
-# both against the Richardson limit of a Q2 series (benchmarks/results/dic_convergence.json,
-# "paper"): 10.0 % / 33.3 % in the 8-12 mm band, 8.4 % / 28.6 % over all points, 3.5 % / 25.2 %
-# in the far field. The largest share is taken; a coarser linear mesh's share is smaller.
-QUADRATIC_REFERENCE = {"h_membrane": 2.0, "h_far": 4.0, "h_edge": 1.0, "skin_layers": 2, "muscle_layers": 4}
-QUADRATIC_REFERENCE_RATIO = 0.30
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A quadratic reference mesh of a linear check mesh (Q2, two skin and four muscle layers,
+    2 mm under the membrane graded to 4 mm far) and its error as a share of the paper mesh's.
+
+    Attributes:
+        h_edge: cell size at the membrane edge [mm].
+        ratio: its error / the paper mesh's, both against the Richardson limit of a Q2 series
+            (benchmarks/results/dic_convergence.json, "paper"), the largest over the regions
+            (all points, 8-12 mm band, far field); a coarser linear mesh's share is smaller.
+    """
+
+    h_edge: float
+    ratio: float
+
+    @property
+    def mesh(self) -> dict[str, float | int]:
+        return {"h_membrane": 2.0, "h_far": 4.0, "h_edge": self.h_edge, "skin_layers": 2, "muscle_layers": 4}
+
+
+# Measured shares (band / all / far field, reference against paper mesh): 1 mm edge cells
+# 10.0 / 33.3 %, 8.4 / 28.6 %, 3.5 / 25.2 %; 0.5 mm edge cells (the `converged` preset's mesh)
+# 3.5 / 33.3 %, 2.9 / 28.6 %, 1.2 / 25.2 %.
+REFERENCES = {
+    "quadratic": Reference(h_edge=1.0, ratio=0.30),  # 131,757 dofs on the paper block
+    "converged": Reference(h_edge=0.5, ratio=0.104),  # 216,045 dofs
+}
+REFINEMENTS = ("uniform", "edge", *REFERENCES)
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
 
 
@@ -86,10 +108,11 @@ def default_refinement(config: Config) -> str:
     """``"edge"`` for a quadratic mesh or one refined at the membrane edge (uniform refinement
     would multiply its dofs by about 8); ``"quadratic"`` for a linear mesh with cells at the
     membrane edge finer than the quadratic reference's (the paper mesh: its uniform refinement
-    has 348k dofs, the reference 132k); else ``"uniform"``."""
+    has 348k dofs, the reference 132k; ``"converged"``, 216k, is the user's choice); else
+    ``"uniform"``."""
     if config.solver.element_degree >= 2 or config.mesh.edge_refined:
         return "edge"
-    return "quadratic" if edge_cell_size(config.mesh) < QUADRATIC_REFERENCE["h_edge"] else "uniform"
+    return "quadratic" if edge_cell_size(config.mesh) < REFERENCES["quadratic"].h_edge else "uniform"
 
 
 def error_ratio(config: Config, refinement: str) -> tuple[float, str]:
@@ -97,18 +120,16 @@ def error_ratio(config: Config, refinement: str) -> tuple[float, str]:
     that share rests on, in words.
 
     Raises:
-        ValueError: the quadratic reference for a mesh that is quadratic already.
+        ValueError: a quadratic reference for a mesh that is quadratic already.
     """
-    if refinement == "quadratic":
+    if refinement in REFERENCES:
         if config.solver.element_degree >= 2:
             raise ValueError(
-                "the quadratic reference is for linear (Q1) meshes; "
+                f"the {refinement} reference is for linear (Q1) meshes; "
                 "a quadratic mesh is refined at its edge (--refine edge)"
             )
-        return QUADRATIC_REFERENCE_RATIO, (
-            f"the reference's error taken as {QUADRATIC_REFERENCE_RATIO:.0%} of the check mesh's, "
-            "as measured for the paper mesh"
-        )
+        ratio = REFERENCES[refinement].ratio
+        return ratio, f"the reference's error taken as {ratio:.0%} of the check mesh's, as measured for the paper mesh"
     order = observed_order(config)
     return 2.0**-order, f"order {order:g} assumed"
 
@@ -123,13 +144,15 @@ def refined_config(config: Config, refinement: str = "uniform") -> Config:
       moves the surface strain as much as halving only its edge cells: 16.4 % vs 16.5 %,
       docs/criticism.md), so this is the affordable refinement of a fine or quadratic mesh
       (uniform refinement multiplies its dofs by about 8);
-    - ``"quadratic"``: not a refinement but :data:`QUADRATIC_REFERENCE`, for a linear mesh
-      (its material, membrane and solver settings kept).
+    - ``"quadratic"``, ``"converged"``: not a refinement but a reference mesh of
+      :data:`REFERENCES`, for a linear mesh (its material, membrane and solver settings kept).
     """
     m = config.mesh
-    if refinement == "quadratic":
+    if refinement in REFERENCES:
         error_ratio(config, refinement)  # a linear mesh only
-        return config.with_changes(mesh=QUADRATIC_REFERENCE, solver={"element_degree": 2, "quadrature_degree": 4})
+        return config.with_changes(
+            mesh=REFERENCES[refinement].mesh, solver={"element_degree": 2, "quadrature_degree": 4}
+        )
     layers = refined_layers(config)
     if refinement == "edge":
         return config.with_changes(mesh={"h_edge": edge_cell_size(m) / 2, **layers})
@@ -155,7 +178,7 @@ class DiscretisationError:
 
     Attributes:
         mesh, refined: descriptions of the check's mesh and of the better one (its refinement
-            or the quadratic reference).
+            or a quadratic reference).
         radius: radius of the local error envelope [mm]: the larger in-plane size under the
             membrane of the two meshes.
         h_edge: its in-plane size at the membrane edge [mm], which governs the error.
