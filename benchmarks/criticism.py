@@ -284,6 +284,17 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     return row
 
 
+PHASES = ("compare", "refined", "diagnose", "add", "next_round")
+
+
+def phases(folder: Path) -> dict[str, float | int]:
+    """Seconds and FE runs of each phase of the case's (last) check, from its report.json."""
+    from inference.criticism.report import read_report
+
+    timings = read_report(folder / "report" / "report.json").timings
+    return {f"{phase}{unit}": getattr(timings, f"{phase}{unit}") for phase in PHASES for unit in ("_s", "_fe_runs")}
+
+
 def verdict_label(row: dict) -> str:
     """A row's verdict, and whether the check found the stated noise too small."""
     understated = row.get("noise_factor", {}).get("estimated", 1.0) > 1.0
@@ -363,7 +374,7 @@ def main() -> None:
                     )
                 run_case(case, seed, fields[source], points, args, comm)
     rows = [
-        json.loads((args.out / f"{case}_{s}" / "row.json").read_text())
+        {**json.loads((args.out / f"{case}_{s}" / "row.json").read_text()), "phases": phases(args.out / f"{case}_{s}")}
         for case in args.cases
         for s in range(args.seeds)
         if (args.out / f"{case}_{s}" / "row.json").exists()

@@ -1,6 +1,6 @@
 """Convergence of what the check compares: the DIC surface strain at scattered points.
 
-    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper]
+    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper | finer]
         [--out benchmarks/results/dic_convergence.json]
 
 One material (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), the mixed design
@@ -18,7 +18,10 @@ simulation). ``edge``: series refined only at the membrane edge (``mesh.h_edge``
 compared with the previous one in its series. ``paper``: the paper preset's error per region
 against a Richardson-extrapolated quadratic reference, and whether each observable converges
 through the thickness (the DIC surface strain, and the average over the top layer of skin cells
-that the datasets hold). The parts are merged into the same file.
+that the datasets hold). ``finer``: the same Q2 series one edge halving further (0.25 mm), so
+that the limit is extrapolated from edge cells 1, 0.5 and 0.25 mm and the 0.5 mm mesh (the
+``converged`` preset, the check's ``converged`` reference) is measured against a limit it is not
+the finest member of; with a 0.35 mm candidate. The parts are merged into the same file.
 Numbers are recorded, not asserted.
 """
 
@@ -97,7 +100,9 @@ def main() -> None:
     from inference.synthetic import dic_points
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("part", nargs="?", choices=["meshes", "refinements", "edge", "paper"], default="meshes")
+    parser.add_argument(
+        "part", nargs="?", choices=["meshes", "refinements", "edge", "paper", "finer"], default="meshes"
+    )
     parser.add_argument("--out", type=Path, default=HERE / "results" / "dic_convergence.json")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument(
@@ -115,6 +120,10 @@ def main() -> None:
         result["edge"] = edge_series(xy, args.mesh_dir)
     elif args.part == "paper":
         result["paper"] = paper_errors(xy, args.mesh_dir, args.store)
+    elif args.part == "finer":
+        result["finer"] = finer_errors(xy, args.mesh_dir, args.store)
+        if MPI.COMM_WORLD.rank:
+            return
     else:
         result.update(meshes(xy, args.mesh_dir))
     args.out.write_text(json.dumps(result, indent=2) + "\n")
@@ -183,6 +192,8 @@ PAPER = (1, 0.5, 2.8, 1, 5, 0.0)
 PAPER_SKIN_LAYERS = [PAPER, (1, 0.5, 2.8, 2, 5, 0.0), (1, 0.5, 2.8, 4, 5, 0.0)]
 PAPER_REFERENCE = [(2, 2, 4, 2, 4, 0.0), (2, 2, 4, 2, 4, 1.0), (2, 2, 4, 2, 4, 0.5)]
 PAPER_CANDIDATES = [(1, 0.5, 2.8, 4, 5, 0.25), (2, 2, 4, 3, 4, 1.0), (2, 2, 4, 2, 8, 1.0)]
+FINER_REFERENCE = [*PAPER_REFERENCE[1:], (2, 2, 4, 2, 4, 0.25)]
+FINER_CANDIDATES = [(2, 2, 4, 2, 4, 0.35)]
 
 
 def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
@@ -243,6 +254,39 @@ def paper_errors(xy, mesh_dir, store: Path) -> dict:
         "field_rms": float(np.sqrt(np.mean(reference**2))),
         "meshes": rows,
         "skin_layers": layers,
+    }
+
+
+def finer_errors(xy, mesh_dir, store: Path) -> dict:
+    """The paper preset, the Q2 series with edge cells 1, 0.5, 0.25 mm and the candidates against
+    the Richardson extrapolation of that series, and each member's change from the previous one.
+    Under mpirun each rank first simulates every size-th mesh (one rank each) into ``store``."""
+    meshes = [PAPER, *FINER_REFERENCE, *FINER_CANDIDATES]
+    comm = MPI.COMM_WORLD
+    for mesh in meshes[comm.rank :: comm.size]:
+        measure_resumable(mesh, xy, mesh_dir, store)
+    comm.Barrier()
+    surface, rows = {}, []
+    for mesh in meshes:
+        surface[mesh], seconds, dofs, _ = measure_resumable(mesh, xy, mesh_dir, store)
+        rows.append({"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 1)})
+        print(rows[-1], flush=True)
+    reference, order = richardson(*(surface[m] for m in FINER_REFERENCE))
+    for row, mesh in zip(rows, surface):
+        row["error_vs_reference"] = band_changes(surface[mesh], reference, xy)
+        print(row["mesh"], {k: round(v, 4) for k, v in row["error_vs_reference"].items()}, flush=True)
+    changes = [
+        {"from": label(a), "to": label(b), "change": band_changes(surface[b], surface[a], xy)}
+        for a, b in zip(FINER_REFERENCE, FINER_REFERENCE[1:])
+    ]
+    return {
+        "command": "mpirun -n 2 python benchmarks/dic_convergence.py finer",
+        "seconds_note": "one simulation on one rank, the other rank simulating another mesh",
+        "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in FINER_REFERENCE),
+        "observed_order": order,
+        "field_rms": float(np.sqrt(np.mean(reference**2))),
+        "meshes": rows,
+        "series_changes": changes,
     }
 
 

@@ -230,7 +230,7 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
         help="the estimate's better mesh: every size halved, or only the membrane-edge "
         "cells (for fine or quadratic meshes), layers doubled in both; or a quadratic reference mesh "
         "for a linear mesh (Q2, 1 mm edge cells; converged: 0.5 mm, dearer, a third of the error). "
-        "auto: edge for a quadratic mesh or one refined at the membrane edge, quadratic for a linear "
+        "auto: edge for a quadratic mesh or one refined at the membrane edge, converged for a linear "
         "mesh with edge cells under 1 mm (paper), else uniform",
     )
     parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")

@@ -560,7 +560,7 @@ def test_the_default_refinement_refines_only_the_edge_of_quadratic_or_edge_refin
     assert default_refinement(load_config("check")) == "edge"
     assert default_refinement(load_config("converged")) == "edge"
     assert default_refinement(load_config("small").with_changes(mesh={"h_edge": 1.0})) == "edge"
-    assert default_refinement(load_config("paper")) == "quadratic"  # Q1, 0.5 mm at the edge
+    assert default_refinement(load_config("paper")) == "converged"  # Q1, 0.5 mm at the edge
 
 
 @pytest.mark.parametrize(

@@ -106,13 +106,14 @@ def refined_layers(config: Config) -> dict[str, int]:
 
 def default_refinement(config: Config) -> str:
     """``"edge"`` for a quadratic mesh or one refined at the membrane edge (uniform refinement
-    would multiply its dofs by about 8); ``"quadratic"`` for a linear mesh with cells at the
-    membrane edge finer than the quadratic reference's (the paper mesh: its uniform refinement
-    has 348k dofs, the reference 132k; ``"converged"``, 216k, is the user's choice); else
-    ``"uniform"``."""
+    would multiply its dofs by about 8); ``"converged"`` for a linear mesh with cells at the
+    membrane edge finer than the ``"quadratic"`` reference's (the paper mesh: its uniform
+    refinement has 348k dofs, the converged reference 216k; against the 132k ``"quadratic"`` one
+    the paper mesh's checks named a spurious pre-stretch in 3 of 5 controls, against the
+    converged one in none of 5, docs/criticism.md §14-15); else ``"uniform"``."""
     if config.solver.element_degree >= 2 or config.mesh.edge_refined:
         return "edge"
-    return "quadratic" if edge_cell_size(config.mesh) < REFERENCES["quadratic"].h_edge else "uniform"
+    return "converged" if edge_cell_size(config.mesh) < REFERENCES["quadratic"].h_edge else "uniform"
 
 
 def error_ratio(config: Config, refinement: str) -> tuple[float, str]:
