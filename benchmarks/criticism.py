@@ -285,14 +285,20 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
 
 
 PHASES = ("compare", "refined", "diagnose", "add", "next_round")
+BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitted")
 
 
-def phases(folder: Path) -> dict[str, float | int]:
-    """Seconds and FE runs of each phase of the case's (last) check, from its report.json."""
-    from inference.criticism.report import read_report
-
-    timings = read_report(folder / "report" / "report.json").timings
-    return {f"{phase}{unit}": getattr(timings, f"{phase}{unit}") for phase in PHASES for unit in ("_s", "_fe_runs")}
+def report_summary(folder: Path) -> dict:
+    """From the case's (last) report.json: seconds and FE runs of each phase, the baseline's
+    chi^2/dof, its best candidate and the competing larger model error."""
+    report = json.loads((folder / "report" / "report.json").read_text())
+    best = report["candidates"][0] if report["candidates"] else None
+    return {
+        "phases": {f"{p}{unit}": report["timings"][f"{p}{unit}"] for p in PHASES for unit in ("_s", "_fe_runs")},
+        "chi2_per_dof": report["versions"][0]["metrics"]["chi2_per_dof"],
+        "best_candidate": best and {key: best[key] for key in BEST_CANDIDATE},
+        "larger_model_error": report["larger_model_error"],
+    }
 
 
 def verdict_label(row: dict) -> str:
@@ -374,7 +380,7 @@ def main() -> None:
                     )
                 run_case(case, seed, fields[source], points, args, comm)
     rows = [
-        {**json.loads((args.out / f"{case}_{s}" / "row.json").read_text()), "phases": phases(args.out / f"{case}_{s}")}
+        {**json.loads((args.out / f"{case}_{s}" / "row.json").read_text()), **report_summary(args.out / f"{case}_{s}")}
         for case in args.cases
         for s in range(args.seeds)
         if (args.out / f"{case}_{s}" / "row.json").exists()
