@@ -224,18 +224,34 @@ def measure_resumable(mesh, xy, mesh_dir, store: Path):
         return f["field"], float(f["seconds"]), int(f["dofs"]), (f["cell_strain"], f["cell_xy"])
 
 
-def paper_errors(xy, mesh_dir, store: Path) -> dict:
-    """The paper preset and its refinements against a Richardson-extrapolated Q2 reference
-    (edge cells 2, 1, 0.5 mm); the skin-layer series compares both observables."""
-    surface, rows, cells = {}, [], {}
-    for mesh in [*PAPER_SKIN_LAYERS, *PAPER_REFERENCE, *PAPER_CANDIDATES]:
+def against_richardson(meshes, series, xy, mesh_dir, store: Path):
+    """Each mesh's DIC field (``measure_resumable``) and its error per region against the
+    Richardson extrapolation of ``series`` (three of the meshes at halving edge cells).
+    Returns (the results' common part: reference, order, field RMS, rows; surface fields,
+    top-cell fields)."""
+    surface, cells, rows = {}, {}, []
+    for mesh in meshes:
         surface[mesh], seconds, dofs, cells[mesh] = measure_resumable(mesh, xy, mesh_dir, store)
         rows.append({"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 1)})
         print(rows[-1], flush=True)
-    reference, order = richardson(*(surface[m] for m in PAPER_REFERENCE))
-    for row, mesh in zip(rows, surface):
+    reference, order = richardson(*(surface[m] for m in series))
+    for row, mesh in zip(rows, meshes):
         row["error_vs_reference"] = band_changes(surface[mesh], reference, xy)
         print(row["mesh"], {k: round(v, 4) for k, v in row["error_vs_reference"].items()}, flush=True)
+    summary = {
+        "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in series),
+        "observed_order": order,
+        "field_rms": float(np.sqrt(np.mean(reference**2))),
+        "meshes": rows,
+    }
+    return summary, surface, cells
+
+
+def paper_errors(xy, mesh_dir, store: Path) -> dict:
+    """The paper preset and its refinements against a Richardson-extrapolated Q2 reference
+    (edge cells 2, 1, 0.5 mm); the skin-layer series compares both observables."""
+    meshes = [*PAPER_SKIN_LAYERS, *PAPER_REFERENCE, *PAPER_CANDIDATES]
+    summary, surface, cells = against_richardson(meshes, PAPER_REFERENCE, xy, mesh_dir, store)
     layers = []
     for previous, mesh in zip(PAPER_SKIN_LAYERS, PAPER_SKIN_LAYERS[1:]):
         layers.append(
@@ -247,14 +263,7 @@ def paper_errors(xy, mesh_dir, store: Path) -> dict:
             }
         )
         print(layers[-1], flush=True)
-    return {
-        "command": "python benchmarks/dic_convergence.py paper",
-        "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in PAPER_REFERENCE),
-        "observed_order": order,
-        "field_rms": float(np.sqrt(np.mean(reference**2))),
-        "meshes": rows,
-        "skin_layers": layers,
-    }
+    return {"command": "python benchmarks/dic_convergence.py paper", **summary, "skin_layers": layers}
 
 
 def finer_errors(xy, mesh_dir, store: Path) -> dict:
@@ -266,15 +275,7 @@ def finer_errors(xy, mesh_dir, store: Path) -> dict:
     for mesh in meshes[comm.rank :: comm.size]:
         measure_resumable(mesh, xy, mesh_dir, store)
     comm.Barrier()
-    surface, rows = {}, []
-    for mesh in meshes:
-        surface[mesh], seconds, dofs, _ = measure_resumable(mesh, xy, mesh_dir, store)
-        rows.append({"mesh": label(mesh), "dofs": dofs, "seconds": round(seconds, 1)})
-        print(rows[-1], flush=True)
-    reference, order = richardson(*(surface[m] for m in FINER_REFERENCE))
-    for row, mesh in zip(rows, surface):
-        row["error_vs_reference"] = band_changes(surface[mesh], reference, xy)
-        print(row["mesh"], {k: round(v, 4) for k, v in row["error_vs_reference"].items()}, flush=True)
+    summary, surface, _ = against_richardson(meshes, FINER_REFERENCE, xy, mesh_dir, store)
     changes = [
         {"from": label(a), "to": label(b), "change": band_changes(surface[b], surface[a], xy)}
         for a, b in zip(FINER_REFERENCE, FINER_REFERENCE[1:])
@@ -282,10 +283,7 @@ def finer_errors(xy, mesh_dir, store: Path) -> dict:
     return {
         "command": "mpirun -n 2 python benchmarks/dic_convergence.py finer",
         "seconds_note": "one simulation on one rank, the other rank simulating another mesh",
-        "reference": "Richardson extrapolation of " + ", ".join(label(m) for m in FINER_REFERENCE),
-        "observed_order": order,
-        "field_rms": float(np.sqrt(np.mean(reference**2))),
-        "meshes": rows,
+        **summary,
         "series_changes": changes,
     }
 
