@@ -336,8 +336,8 @@ def verdict(
     A carried discretisation error above half the noise (``carried_sigma`` > 0.5, RMS in noise
     sd) turns "something outside the registry is missing" into "rerun on a finer mesh first",
     with how many times its estimate the mesh's error would have to be to explain the residual
-    (``larger``, :func:`larger_model_error`). A candidate that a larger carried error explains as well
-    (``larger``, :func:`larger_model_error`) is said to be not enough, with that comparison."""
+    (``larger``, :func:`larger_model_error`); a candidate that this larger error explains as well
+    is said to be not enough, with that comparison."""
     if not metrics.structured:
         return (
             f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
