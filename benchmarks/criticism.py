@@ -291,13 +291,17 @@ BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitt
 def report_summary(folder: Path) -> dict:
     """From the case's (last) report.json: seconds and FE runs of each phase, the baseline's
     chi^2/dof, its best candidate and the competing larger model error."""
-    report = json.loads((folder / "report" / "report.json").read_text())
-    best = report["candidates"][0] if report["candidates"] else None
+    from inference.criticism.report import read_report
+
+    report = read_report(folder / "report" / "report.json")
+    timings = dataclasses.asdict(report.timings)
+    best = report.diagnosis.candidates[0] if report.diagnosis.candidates else None
+    larger = report.diagnosis.larger_model_error
     return {
-        "phases": {f"{p}{unit}": report["timings"][f"{p}{unit}"] for p in PHASES for unit in ("_s", "_fe_runs")},
-        "chi2_per_dof": report["versions"][0]["metrics"]["chi2_per_dof"],
-        "best_candidate": best and {key: best[key] for key in BEST_CANDIDATE},
-        "larger_model_error": report["larger_model_error"],
+        "phases": {f"{p}{unit}": timings[f"{p}{unit}"] for p in PHASES for unit in ("_s", "_fe_runs")},
+        "chi2_per_dof": report.versions[0].metrics.chi2_per_dof,
+        "best_candidate": best and {key: getattr(best, key) for key in BEST_CANDIDATE},
+        "larger_model_error": larger and dataclasses.asdict(larger),
     }
 
 

@@ -19,6 +19,7 @@ from inference.criticism.report import (
     ReportDiscretisation,
     ReportFailedRun,
     ReportVersion,
+    diagnosis_dict,
     read_report,
     write_report,
 )
@@ -659,7 +660,9 @@ def test_a_model_error_larger_than_carried_is_found_as_such_and_not_blamed_on_an
         assert d.metrics.structured and d.best is None
         assert d.larger_model_error.factor == pytest.approx(1.5, abs=0.3)
         assert "may be the mesh's" in d.text
-        assert f"mesh's error at {d.larger_model_error.factor:.1f} times its estimate" in d.text
+        assert d.text.count(f"error at {d.larger_model_error.factor:.1f} times its estimate") == 1, d.text
+    as_written = json.loads(json.dumps({"verdict": d.text, **diagnosis_dict(d)}))
+    assert ReportDiagnosis.from_json(as_written).larger_model_error == d.larger_model_error
     with_effect = Data(y + forward(x_true) - forward.f0, masks, xy[None], noise, carried)
     cal = calibrate(forward, with_effect, forward.x0, list(range(5)), max_iterations=30)
     d = diagnose(forward, cal, with_effect, list(EFFECTS), 10.0, 4.0, confirm=1, carried_sigma=2.0, max_iterations=30)
@@ -787,7 +790,7 @@ def assert_report_reads_back(result, out):
     """write_report's report.json, read back by read_report, holds the result's values."""
     report = read_report(write_report(result, out).with_name("report.json"))
     for read, d in ((report.diagnosis, result.diagnosis), (report.next_round, result.next_round)):
-        assert read == ReportDiagnosis(d.text, d.regions, d.hotspot, d.scores)
+        assert read == ReportDiagnosis(d.text, d.regions, d.hotspot, d.scores, d.larger_model_error)
     assert report.versions == [
         ReportVersion(v.calibration.label, v.metrics, v.regions, v.calibration.estimates()) for v in result.versions
     ]

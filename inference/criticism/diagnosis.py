@@ -354,13 +354,16 @@ def verdict(
     best = next((s for s in scores if s.explains), None)
     if best is None:
         lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
-        if scores and larger and STRONG_EVIDENCE < scores[0].delta_bic <= larger.delta_bic:
+        compared = bool(scores and larger and STRONG_EVIDENCE < scores[0].delta_bic <= larger.delta_bic)
+        if compared:
             lead = lead[:-1] + (
                 f": the carried model error at {larger.factor:.1f} times its estimate explains the residual "
                 f"as well (Delta BIC = +{larger.delta_bic:.1f})."
             )
         if carried_sigma > MESH_RESOLVED_SIGMA:
-            factor = f" (it would take the mesh's error at {larger.factor:.1f} times its estimate)" if larger else ""
+            factor = ""
+            if larger and not compared:  # else the lead has said it
+                factor = f" (it would take the mesh's error at {larger.factor:.1f} times its estimate)"
             return (
                 text + " No candidate explains the residual." + lead + " The check's own discretisation error "
                 f"exceeds the noise, so this structure may be the mesh's{factor}: rerun on a finer mesh before "

@@ -12,7 +12,7 @@ import numpy as np
 
 from inference.criticism.calibration import Estimate
 from inference.criticism.check import CheckResult, CheckTimings
-from inference.criticism.diagnosis import CandidateScore, Diagnosis
+from inference.criticism.diagnosis import CandidateScore, Diagnosis, LargerModelError
 from inference.criticism.metrics import Hotspot, RegionResidual, ResidualMetrics
 from inference.plots import field_grid, pyplot, save_figure
 from skinfem.effects import EFFECTS, get_effect
@@ -478,20 +478,25 @@ class ReportDiagnosis:
         regions: the regions ranked by their RMS standardised residual [sigma].
         hotspot: the disc where the residual peaks.
         candidates: the candidate effects' scores, best first.
+        larger_model_error: the carried model error at the multiple that fits the residual best,
+            which a candidate must beat (None when no model error is carried).
     """
 
     verdict: str
     regions: list[RegionResidual]
     hotspot: Hotspot
     candidates: list[CandidateScore]
+    larger_model_error: LargerModelError | None
 
     @classmethod
     def from_json(cls, d: dict) -> ReportDiagnosis:
+        larger = d["larger_model_error"]
         return cls(
             d["verdict"],
             [RegionResidual(**g) for g in d["regions"]],
             Hotspot(**d["hotspot"]),
             [CandidateScore(**c) for c in d["candidates"]],
+            None if larger is None else LargerModelError(**larger),
         )
 
 
