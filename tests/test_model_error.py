@@ -89,14 +89,15 @@ def smooth_field_and_error(seed: int):
 
 
 def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
-    """Meshes converging at the order the check assumes for Q2 (1.5): from the check mesh and its
+    """Meshes converging at the order the check assumes for Q2: from the check mesh and its
     edge refinement alone, the estimate gives the check mesh's error, the refined (carried)
-    one, and the edge cell size whose error is half the noise -- each against the closed form."""
+    one, and the edge cell size whose error is half the noise -- each against the closed form.
+    A quadratic mesh with two skin layers is advised only a finer edge."""
     from inference.criticism.discretisation import estimate, observed_order, refined_config
     from skinfem.config import load_config
     from skinfem.mesh import edge_cell_size
 
-    config = load_config("small").with_changes(solver={"element_degree": 2}, mesh={"h_edge": 1.0})
+    config = load_config("small").with_changes(solver={"element_degree": 2}, mesh={"h_edge": 1.0, "skin_layers": 2})
     p = observed_order(config)
     xy, masks, exact, g, data = smooth_field_and_error(3)
     coarse, fine = (ConvergingForward(c, exact, g, p) for c in (config, refined_config(config, "edge")))
@@ -114,6 +115,7 @@ def test_the_two_mesh_estimate_at_the_measured_order_gives_each_meshs_error():
     assert np.isclose(np.sqrt(np.mean(sd**2)), error_rms(h / 2), rtol=0.15)
     assert np.isclose(error_rms(disc.suggested_h_edge()) / 1e-3, 0.5)
     assert disc.resolved == (disc.remaining_sigma <= 0.5)
+    assert not disc.resolved and "mesh.h_edge <=" in disc.summary() and "--config check" not in disc.summary()
 
 
 class ScaledErrorForward(ConvergingForward):
@@ -144,4 +146,5 @@ def test_a_quadratic_reference_with_a_share_of_the_error_gives_each_meshs_error(
     assert np.isclose(disc.relative, g_rms / np.sqrt(np.mean(exact**2)))
     assert np.isclose(disc.sigma, g_rms / 1e-3) and np.isclose(disc.remaining_sigma, r * g_rms / 1e-3)
     np.testing.assert_allclose(disc.extrapolated * disc.shift, -g, atol=1e-15)  # f_h + a shift = exact
-    assert "30% of the check mesh's" in disc.summary()
+    assert f"{r:.0%} of the check mesh's" in disc.summary()
+    assert not disc.resolved and "quadratic elements (solver.element_degree = 2)" in disc.summary()

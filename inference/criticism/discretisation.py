@@ -196,6 +196,8 @@ class DiscretisationError:
         seconds: wall time of the better mesh's simulation(s).
         amplitude, amplitude_sd: the multiple of the shift the calibrated, corrected model uses
             (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
+        quadratic: the check's mesh has quadratic elements and two or more skin layers already
+            (its advice is then only a finer edge).
     """
 
     mesh: str
@@ -211,6 +213,7 @@ class DiscretisationError:
     seconds: float
     amplitude: float | None = None
     amplitude_sd: float | None = None
+    quadratic: bool = False
 
     @property
     def remaining_factor(self) -> float:
@@ -285,8 +288,12 @@ class DiscretisationError:
             text += (
                 f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
                 f"The error lives at the membrane edge: at order {self.order:g} a mesh with cells of "
-                f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it; quadratic elements "
-                "(solver.element_degree = 2) with two skin layers converge faster "
+                f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it"
+            )
+            text += (
+                "."
+                if self.quadratic
+                else "; quadratic elements (solver.element_degree = 2) with two skin layers converge faster "
                 "(`--config check`, docs/criticism.md)."
             )
         return text
@@ -345,6 +352,7 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data, refi
         relative=float(np.sqrt(np.mean(error**2)) / measured_rms),
         sigma=float(np.sqrt(np.mean((error / data.noise.sd) ** 2))),
         seconds=time.perf_counter() - start,
+        quadratic=coarse.config.solver.element_degree >= 2 and coarse.config.mesh.skin_layers >= 2,
     )
 
 
