@@ -30,18 +30,6 @@ def test_converged_preset_is_the_mesh_measured_against_the_extrapolated_limit():
         assert errors[name][band] < 0.05 < errors[paper_name][band]
 
 
-def test_the_quadratic_edge_order_is_the_measured_one():
-    """Q2 edge refinement is taken to converge at the order measured on the finest recorded
-    series (benchmarks/results/dic_convergence.json, "finer": edge cells 1, 0.5, 0.25 mm)."""
-    import json
-    from pathlib import Path
-
-    from inference.criticism.discretisation import OBSERVED_ORDER
-
-    finer = json.loads((Path(__file__).parents[1] / "benchmarks/results/dic_convergence.json").read_text())["finer"]
-    assert OBSERVED_ORDER[2] == pytest.approx(finer["observed_order"], abs=0.05)
-
-
 def test_paper_designs_are_the_14_of_the_paper():
     designs = Config().sweep.designs
     assert len(designs) == 14

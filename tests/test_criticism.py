@@ -564,6 +564,19 @@ def test_the_default_refinement_refines_only_the_edge_of_quadratic_or_edge_refin
     assert default_refinement(load_config("paper")) == "converged"  # Q1, 0.5 mm at the edge
 
 
+def finer_series() -> dict:
+    """The finest recorded convergence series (edge cells 1, 0.5, 0.25 mm) of
+    benchmarks/results/dic_convergence.json, the measurement the estimate's constants come from."""
+    return json.loads(Path("benchmarks/results/dic_convergence.json").read_text())["finer"]
+
+
+def test_the_quadratic_edge_order_is_the_measured_one():
+    """Q2 edge refinement is taken to converge at the order observed on the finest series."""
+    from inference.criticism.discretisation import OBSERVED_ORDER
+
+    assert OBSERVED_ORDER[2] == pytest.approx(finer_series()["observed_order"], abs=0.05)
+
+
 @pytest.mark.parametrize(
     ("refinement", "h_edge", "measured_row"),
     [("quadratic", 1.0, "Q2 2/4 mm, s2 m4, edge 1 mm"), ("converged", 0.5, "Q2 2/4 mm, s2 m4, edge 0.5 mm")],
@@ -575,7 +588,6 @@ def test_a_quadratic_reference_of_a_linear_mesh_keeps_everything_but_the_mesh(re
     settings; its error is taken as the largest measured share of the paper mesh's against the
     limit of the finest series (benchmarks/results/dic_convergence.json, "finer": 32 % and
     14 %). A quadratic mesh is refused before any FE run."""
-    import json
 
     from inference.criticism.discretisation import error_ratio, refined_config
     from skinfem.config import load_config
@@ -589,8 +601,7 @@ def test_a_quadratic_reference_of_a_linear_mesh_keeps_everything_but_the_mesh(re
     assert (m.length, m.membrane_size, m.skin_thickness) == (paper.mesh.length, paper.mesh.membrane_size, 0.6)
     if refinement == "converged":
         assert m == load_config("converged").mesh
-    measured = json.loads(Path("benchmarks/results/dic_convergence.json").read_text())["finer"]["meshes"]
-    errors = {row["mesh"]: row["error_vs_reference"] for row in measured}
+    errors = {row["mesh"]: row["error_vs_reference"] for row in finer_series()["meshes"]}
     ratios = [
         errors[measured_row][region] / errors["Q1 0.5/2.8 mm, s1 m5"][region]
         for region in ("all points", "edge band (8-12 mm)", "far field (> 12 mm)")
