@@ -290,7 +290,7 @@ BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitt
 
 def report_summary(folder: Path) -> dict:
     """From the case's (last) report.json: seconds and FE runs of each phase, the baseline's
-    chi^2/dof, its best candidate and the competing larger model error."""
+    chi^2/dof and posterior-predictive p, its best candidate and the competing larger model error."""
     from inference.criticism.report import read_report
 
     report = read_report(folder / "report" / "report.json")
@@ -300,6 +300,7 @@ def report_summary(folder: Path) -> dict:
     return {
         "phases": {f"{p}{unit}": timings[f"{p}{unit}"] for p in PHASES for unit in ("_s", "_fe_runs")},
         "chi2_per_dof": report.versions[0].metrics.chi2_per_dof,
+        "ppc_p": report.versions[0].metrics.ppc_p,
         "best_candidate": best and {key: getattr(best, key) for key in BEST_CANDIDATE},
         "larger_model_error": larger and dataclasses.asdict(larger),
     }
