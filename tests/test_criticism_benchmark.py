@@ -54,3 +54,19 @@ def test_an_understated_noise_is_its_own_verdict_in_the_table():
     lines = load_benchmark().markdown_table(rows).splitlines()
     assert "| understated_noise | 2 | no missing effect (noise understated): 2 | — |" in lines[2]
     assert "| none | 1 | no missing effect: 1 | — |" in lines[3]
+
+
+def test_the_limit_data_are_exact_for_fields_that_converge_at_the_measured_order():
+    """``--data q2-limit``: fields f(h) = f* + C h^p of two meshes whose edge cells differ by 2
+    extrapolate to f*; the pair differs in the edge cells only."""
+    import numpy as np
+
+    from inference.criticism.discretisation import OBSERVED_ORDER
+
+    bench = load_benchmark()
+    rng = np.random.default_rng(1)
+    limit, c = rng.normal(size=(2, 5, 3)), rng.normal(size=(2, 5, 3))
+    coarser, finer = (limit + c * h ** OBSERVED_ORDER[2] for h in (0.5, 0.25))
+    np.testing.assert_allclose(bench.extrapolated(coarser, finer), limit, atol=1e-12)
+    a, b = (bench.DATA_MESHES[name] for name in bench.LIMITS["q2-limit"])
+    assert {k for k in a if a[k] != b[k]} == {"h_edge"} and a["h_edge"] == 2 * b["h_edge"]
