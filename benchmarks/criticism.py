@@ -106,9 +106,9 @@ def extrapolated(coarser: np.ndarray, finer: np.ndarray) -> np.ndarray:
     """Richardson extrapolation of measured fields of two meshes whose edge cells differ by a
     factor 2, at the order measured for Q2 edge refinement: finer + (finer - coarser) / (2^p - 1).
     An estimate of the converged field, as a real measurement would be."""
-    from inference.criticism.discretisation import OBSERVED_ORDER
+    from inference.criticism.discretisation import OBSERVED_ORDER, richardson_limit
 
-    return finer + (finer - coarser) / (2.0 ** OBSERVED_ORDER[2] - 1.0)
+    return richardson_limit(coarser, finer, OBSERVED_ORDER[2])
 
 
 def describe_data(name: str) -> str:

@@ -198,10 +198,12 @@ FINER_CANDIDATES = [(2, 2, 4, 2, 4, 0.35)]
 
 def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
     """Extrapolated field and observed order from three fields at halving mesh sizes: the order
-    from the RMS changes, the limit fine + (fine - medium) / (2^p - 1)."""
+    from the RMS changes, the limit of the two finer ones at that order."""
+    from inference.criticism.discretisation import richardson_limit
+
     ratio = np.sqrt(np.mean((medium - coarse) ** 2) / np.mean((fine - medium) ** 2))
     order = float(np.log2(ratio))
-    return fine + (fine - medium) / (2**order - 1), order
+    return richardson_limit(medium, fine, order), order
 
 
 def measure_resumable(mesh, xy, mesh_dir, store: Path):

@@ -86,6 +86,12 @@ REFINEMENTS = ("uniform", "edge", *REFERENCES)
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
 
 
+def richardson_limit(coarser: np.ndarray, finer: np.ndarray, order: float) -> np.ndarray:
+    """Richardson extrapolation of two fields whose mesh sizes differ by a factor 2, converging
+    at ``order``: finer + (finer - coarser) / (2^order - 1)."""
+    return finer + (finer - coarser) / (2.0**order - 1.0)
+
+
 def observed_order(config: Config) -> float:
     """The measured order p of :data:`OBSERVED_ORDER` for ``config``'s elements (the lowest
     measured one for a degree that was not measured: the most conservative)."""
