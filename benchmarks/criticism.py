@@ -26,7 +26,9 @@ whose next round should name the other).
 
 Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``, and each case's
 noise-free data ``<out>/data_<data>_<case>.npy`` (delete them after changing a case); a rerun skips them,
-and ``--summarise`` tabulates the finished ones without running more.
+and ``--summarise`` tabulates the finished ones without running more. Rows already in the results
+file (same checked mesh, data, refinement and start) are kept and not run again, so that seeds
+can be added to a recorded table from an empty ``--out``.
 Writes the confusion table (true effect vs verdict), the true effect's rank, RMSE before and
 after adding it, seconds and FE runs to benchmarks/results/criticism.json. Recorded, not asserted.
 """
@@ -337,6 +339,22 @@ def report_summary(folder: Path) -> dict:
     }
 
 
+def setup_flags(args) -> str:
+    """The options that make two runs' rows comparable: the data and how the check is set up."""
+    return f"--data {args.data} --refine {args.refine} --start {args.start}"
+
+
+def recorded_rows(args) -> dict[tuple[str, int], dict]:
+    """Rows already in the results file, by (case, seed): kept, and not run again. A results file
+    of another setup (checked mesh, data, refinement, start) ends the run with one line."""
+    if not args.results.exists():
+        return {}
+    earlier = json.loads(args.results.read_text())
+    if earlier["checked_config"] != args.config or not earlier["command"].endswith(setup_flags(args)):
+        raise SystemExit(f"{args.results} holds checks of another setup ({earlier['command']}); pass another --results")
+    return {(row["case"], row["seed"]): row for row in earlier["rows"]}
+
+
 def verdict_label(row: dict) -> str:
     """A row's verdict, and whether the check found the stated noise too small."""
     understated = row.get("noise_factor", {}).get("estimated", 1.0) > 1.0
@@ -406,28 +424,34 @@ def main() -> None:
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     points = dic_points(18.0, 1.0, np.random.default_rng(0))
+    recorded = recorded_rows(args)
     fields = {}
     for seed in [] if args.summarise else range(args.seeds):  # seed by seed: a stopped run has every case
         for case in args.cases:
-            if not (args.out / f"{case}_{seed}" / "row.json").exists():
+            if (case, seed) not in recorded and not (args.out / f"{case}_{seed}" / "row.json").exists():
                 source = data_case(case)
                 if source not in fields:
                     fields[source] = measured_data(args.data, source, points, args, comm)
                 run_case(case, seed, fields[source], points, args, comm)
-    rows = [
-        {**json.loads((args.out / f"{case}_{s}" / "row.json").read_text()), **report_summary(args.out / f"{case}_{s}")}
+    finished = {
+        (case, s): {
+            **json.loads((args.out / f"{case}_{s}" / "row.json").read_text()),
+            **report_summary(args.out / f"{case}_{s}"),
+        }
         for case in args.cases
         for s in range(args.seeds)
         if (args.out / f"{case}_{s}" / "row.json").exists()
-    ]
+    }
+    by_case = {case: i for i, case in enumerate(dict.fromkeys([*args.cases, *(c for c, _ in recorded)]))}
+    rows = [row for _, row in sorted({**recorded, **finished}.items(), key=lambda kv: (by_case[kv[0][0]], kv[0][1]))]
     if comm.rank == 0:
         confusion: dict[str, dict[str, int]] = {}
         for row in rows:
             confusion.setdefault(row["case"], {}).setdefault(verdict_label(row), 0)
             confusion[row["case"]][verdict_label(row)] += 1
         command = (
-            f"mpirun -n 2 python benchmarks/criticism.py --config {args.config} --cases {' '.join(args.cases)} "
-            f"--seeds {args.seeds} --data {args.data} --refine {args.refine} --start {args.start}"
+            f"mpirun -n 2 python benchmarks/criticism.py --config {args.config} --cases {' '.join(by_case)} "
+            f"--seeds {1 + max((row['seed'] for row in rows), default=args.seeds - 1)} {setup_flags(args)}"
         )
         args.results.write_text(
             json.dumps(

@@ -70,3 +70,23 @@ def test_the_limit_data_are_exact_for_fields_that_converge_at_the_measured_order
     np.testing.assert_allclose(bench.extrapolated(coarser, finer), limit, atol=1e-12)
     a, b = (bench.DATA_MESHES[name] for name in bench.LIMITS["q2-limit"])
     assert {k for k in a if a[k] != b[k]} == {"h_edge"} and a["h_edge"] == 2 * b["h_edge"]
+
+
+def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
+    """Seeds can be added to a results file from an empty --out; a file of another setup is not overwritten."""
+    import json
+    from argparse import Namespace
+
+    import pytest
+
+    bench = load_benchmark()
+    args = Namespace(config="check", data="q2-limit", refine="edge", start="centre", results=tmp_path / "r.json")
+    assert bench.recorded_rows(args) == {}
+    command = (
+        f"mpirun -n 2 python benchmarks/criticism.py --config check --cases none --seeds 1 {bench.setup_flags(args)}"
+    )
+    earlier = {"command": command, "checked_config": "check", "rows": [{"case": "none", "seed": 0, "verdict": "x"}]}
+    args.results.write_text(json.dumps(earlier))
+    assert bench.recorded_rows(args) == {("none", 0): earlier["rows"][0]}
+    with pytest.raises(SystemExit, match="another setup"):
+        bench.recorded_rows(Namespace(**{**vars(args), "refine": "uniform"}))
