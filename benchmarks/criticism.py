@@ -5,6 +5,7 @@
                                                [--data q2 | q2-edge | q2-fine | q2-limit]
                                                [--refine uniform | edge | quadratic | converged]
                                                [--start spread | centre] [--results FILE]
+                                               [--keep-recorded]
 
 Data the checked model did not make: quadratic elements (Q2) on a mesh graded differently from
 ``small`` (far size 4 mm, 3 muscle layers; ``--data q2-edge``: also two skin layers and 0.5 mm
@@ -26,9 +27,11 @@ whose next round should name the other).
 
 Resumable: every finished check leaves ``<out>/<case>_<seed>/row.json``, and each case's
 noise-free data ``<out>/data_<data>_<case>.npy`` (delete them after changing a case); a rerun skips them,
-and ``--summarise`` tabulates the finished ones without running more. Rows already in the results
-file (same checked mesh, data, refinement and start) are kept and not run again, so that seeds
-can be added to a recorded table from an empty ``--out``.
+and ``--summarise`` tabulates the finished ones without running more. With ``--keep-recorded``
+the rows already in the results file (same checked mesh, data, refinement and start) are kept
+and not run again, so that seeds can be added to a recorded table from an empty ``--out``;
+without it the results file is written from ``--out``'s rows alone, as a rerun with a new build
+should be.
 Writes the confusion table (true effect vs verdict), the true effect's rank, RMSE before and
 after adding it, seconds and FE runs to benchmarks/results/criticism.json. Recorded, not asserted.
 """
@@ -345,9 +348,10 @@ def setup_flags(args) -> str:
 
 
 def recorded_rows(args) -> dict[tuple[str, int], dict]:
-    """Rows already in the results file, by (case, seed): kept, and not run again. A results file
-    of another setup (checked mesh, data, refinement, start) ends the run with one line."""
-    if not args.results.exists():
+    """With ``--keep-recorded``, the rows already in the results file, by (case, seed): kept, and
+    not run again. A results file of another setup (checked mesh, data, refinement, start) then
+    ends the run with one line."""
+    if not (args.keep_recorded and args.results.exists()):
         return {}
     earlier = json.loads(args.results.read_text())
     if earlier["checked_config"] != args.config or not earlier["command"].endswith(setup_flags(args)):
@@ -421,6 +425,9 @@ def main() -> None:
         help="calibration start: best of 5 spread points, or the box centre",
     )
     parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--keep-recorded", action="store_true", help="keep the results file's rows and run only the missing ones"
+    )
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     points = dic_points(18.0, 1.0, np.random.default_rng(0))

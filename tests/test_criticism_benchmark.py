@@ -73,14 +73,17 @@ def test_the_limit_data_are_exact_for_fields_that_converge_at_the_measured_order
 
 
 def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
-    """Seeds can be added to a results file from an empty --out; a file of another setup is not overwritten."""
+    """With --keep-recorded, seeds can be added to a results file from an empty --out, and a file of
+    another setup is not overwritten; without it, nothing recorded is reused."""
     import json
     from argparse import Namespace
 
     import pytest
 
     bench = load_benchmark()
-    args = Namespace(config="check", data="q2-limit", refine="edge", start="centre", results=tmp_path / "r.json")
+    args = Namespace(
+        config="check", data="q2-limit", refine="edge", start="centre", results=tmp_path / "r.json", keep_recorded=True
+    )
     assert bench.recorded_rows(args) == {}
     command = (
         f"mpirun -n 2 python benchmarks/criticism.py --config check --cases none --seeds 1 {bench.setup_flags(args)}"
@@ -88,5 +91,6 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
     earlier = {"command": command, "checked_config": "check", "rows": [{"case": "none", "seed": 0, "verdict": "x"}]}
     args.results.write_text(json.dumps(earlier))
     assert bench.recorded_rows(args) == {("none", 0): earlier["rows"][0]}
+    assert bench.recorded_rows(Namespace(**{**vars(args), "keep_recorded": False})) == {}  # a rerun measures anew
     with pytest.raises(SystemExit, match="another setup"):
         bench.recorded_rows(Namespace(**{**vars(args), "refine": "uniform"}))
