@@ -355,7 +355,8 @@ def recorded_rows(args) -> dict[tuple[str, int], dict]:
         return {}
     earlier = json.loads(args.results.read_text())
     if earlier["checked_config"] != args.config or not earlier["command"].endswith(setup_flags(args)):
-        raise SystemExit(f"{args.results} holds checks of another setup ({earlier['command']}); pass another --results")
+        message = f"{args.results} holds checks of another setup ({earlier['command']}); pass another --results"
+        raise SystemExit(message if MPI.COMM_WORLD.rank == 0 else 1)  # every rank reads the file: one line
     return {(row["case"], row["seed"]): row for row in earlier["rows"]}
 
 
