@@ -353,11 +353,17 @@ def recorded_rows(args) -> dict[tuple[str, int], dict]:
     ends the run with one line."""
     if not (args.keep_recorded and args.results.exists()):
         return {}
-    earlier = json.loads(args.results.read_text())
-    if earlier["checked_config"] != args.config or not earlier["command"].endswith(setup_flags(args)):
-        message = f"{args.results} holds checks of another setup ({earlier['command']}); pass another --results"
-        raise SystemExit(message if MPI.COMM_WORLD.rank == 0 else 1)  # every rank reads the file: one line
-    return {(row["case"], row["seed"]): row for row in earlier["rows"]}
+    try:
+        earlier = json.loads(args.results.read_text())
+        config, command, rows = earlier["checked_config"], earlier["command"], earlier["rows"]
+        recorded = {(row["case"], row["seed"]): row for row in rows}
+    except (ValueError, KeyError, TypeError):
+        message = f"{args.results} is not a results file of this benchmark; pass another --results"
+    else:
+        if config == args.config and command.endswith(setup_flags(args)):
+            return recorded
+        message = f"{args.results} holds checks of another setup ({command}); pass another --results"
+    raise SystemExit(message if MPI.COMM_WORLD.rank == 0 else 1)  # every rank reads the file: one line
 
 
 def verdict_label(row: dict) -> str:

@@ -94,3 +94,7 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
     assert bench.recorded_rows(Namespace(**{**vars(args), "keep_recorded": False})) == {}  # a rerun measures anew
     with pytest.raises(SystemExit, match="another setup"):
         bench.recorded_rows(Namespace(**{**vars(args), "refine": "uniform"}))
+    for malformed in ("{not json", json.dumps({"command": command}), json.dumps({**earlier, "rows": [1]})):
+        args.results.write_text(malformed)
+        with pytest.raises(SystemExit, match="not a results file"):
+            bench.recorded_rows(args)
