@@ -33,6 +33,7 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
+from skinfem.io import COMPONENTS
 from skinfem.outputs import write_atomically
 
 FORMATS = ("vic", "vic9", "davis8", "davis10", "dice", "table")
@@ -913,7 +914,7 @@ def plot_field(xy: np.ndarray, strain: np.ndarray, path: Path | str, membrane_ha
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
     h = membrane_half
-    for ax, values, name in zip(axes, strain.T, ("xx", "yy", "xy")):
+    for ax, values, name in zip(axes, strain.T, COMPONENTS):
         vmax = max(float(np.abs(values).max()), 1e-12)
         im = ax.scatter(xy[:, 0], xy[:, 1], c=values, s=12, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)

@@ -58,7 +58,8 @@ from scipy.stats import invgamma
 
 from inference.observations import Observation
 from skinfem.config import PARAM_NAMES
-from surrogate.emulator import COMPONENTS, Emulator
+from skinfem.io import COMPONENTS
+from surrogate.emulator import Emulator
 from surrogate.error_model import truncation_variance
 
 

@@ -280,11 +280,6 @@ def map_to_cells(measurement: Measurement, cells_xy: np.ndarray, max_gap: float 
     )
 
 
-def from_measurements(paths: list[Path | str], cells_xy: np.ndarray, half_length: float) -> list[Observation]:
-    """Read several measurement files and map each onto the skin cells."""
-    return [map_to_cells(read_measurement(p, half_length), cells_xy) for p in paths]
-
-
 def thin(measurement: Measurement, spacing: float) -> Measurement:
     """Keep one point (the first) per square of side ``spacing`` [mm]: DIC points closer than
     the strain window carry little independent information, and the check's cost grows with

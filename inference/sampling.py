@@ -44,8 +44,8 @@ import torch
 
 from inference.model import ErrorBudget, ObservedFields, SkinPosterior, prior_draws
 from skinfem.config import PARAM_NAMES
+from skinfem.io import COMPONENTS
 from skinfem.outputs import write_atomically
-from surrogate.emulator import COMPONENTS
 
 RHAT_LIMIT, ESS_LIMIT = 1.01, 400
 N_PRIOR_DRAWS = 1000

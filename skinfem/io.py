@@ -41,6 +41,7 @@ from skinfem.outputs import remove_output
 
 STATUS_NOT_RUN, STATUS_OK, STATUS_FAILED = 0, 1, -1
 FORMAT_VERSION = 1
+COMPONENTS = ("xx", "yy", "xy")  # the order of the strain components in every array and file
 MESSAGE_BYTES = 240  # fixed-length messages keep the file layout static
 DATASET_MEMBERS = (
     "params",
@@ -364,7 +365,7 @@ def dataset_summary(data: StrainDataset) -> str:
             high = np.maximum(high, np.nanmax(block, axis=(0, 1, 2)))
         lines.append(
             "  log strain range: "
-            + ", ".join(f"E_{c} [{lo:+.4f}, {hi:+.4f}]" for c, lo, hi in zip(("xx", "yy", "xy"), low, high))
+            + ", ".join(f"E_{c} [{lo:+.4f}, {hi:+.4f}]" for c, lo, hi in zip(COMPONENTS, low, high))
         )
         secs = data.seconds[ok]
         its = data.newton_iterations[ok]

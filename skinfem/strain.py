@@ -23,8 +23,6 @@ import numpy as np
 from skinfem.dic import fit_gradient, surface_log_strain
 from skinfem.fenics import dolfinx, ufl
 
-COMPONENTS = ("xx", "yy", "xy")
-
 
 def log_strain(F: np.ndarray) -> np.ndarray:
     """Hencky strain ln V = ln(F F^T) / 2.

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from skinfem.io import (
 )
 from skinfem.mesh import DEFAULT_MESH_DIR, ensure_mesh
 from skinfem.outputs import check_output, check_writable, release_lock, take_lock, write_atomically
+from skinfem.parallel import CollectiveError, on_root
 
 _RESULT_TAG = 71
 
@@ -134,17 +136,16 @@ class SweepReport:
         )
 
 
-def _collective(comm: MPI.Comm, check) -> None:
-    """Run ``check()`` on rank 0 and raise its ValueError on every rank."""
-    message = None
-    if comm.rank == 0:
-        try:
-            check()
-        except (ValueError, FileNotFoundError) as exc:
-            message = str(exc)
-    message = comm.bcast(message)
-    if message is not None:
-        raise ValueError(message)
+class SweepError(CollectiveError, ValueError):
+    """A sweep's output or input refused, raised on every rank."""
+
+
+def _on_root(comm: MPI.Comm, check: Callable[[], None]) -> None:
+    """Run ``check()`` on rank 0; any error it raises is raised on every rank as SweepError."""
+    try:
+        on_root(comm, check)
+    except CollectiveError as exc:
+        raise SweepError(str(exc)) from None
 
 
 def _check_resumable(path: Path, config: Config, mesh_sha256: str, plan: SweepPlan) -> None:
@@ -185,7 +186,8 @@ def run_sweep(
     Raises:
         ValueError: ``out`` exists without ``resume`` or ``force``, belongs to another
             configuration or mesh, its folder cannot be written, another sweep holds its lock
-            (or a stale lock is left), or ``comm.size`` is not a multiple of ``ranks_per_sim``.
+            (or a stale lock is left), or ``comm.size`` is not a multiple of ``ranks_per_sim``;
+            the checks of ``out`` run on rank 0 and fail on every rank (:class:`SweepError`).
     """
     out = Path(out)
     if ranks_per_sim < 1 or comm.size % ranks_per_sim:
@@ -196,10 +198,10 @@ def run_sweep(
             raise ValueError(f"--out must end in .h5, got '{out}'")
         check_writable(out)
 
-    _collective(comm, check_name)
-    _collective(comm, lambda: take_lock(out))
+    _on_root(comm, check_name)
+    _on_root(comm, lambda: take_lock(out))
     try:
-        _collective(comm, lambda: check_output(out, force, resume=resume))
+        _on_root(comm, lambda: check_output(out, force, resume=resume))
         return _sweep(
             config,
             out,
@@ -309,7 +311,7 @@ def _sweep(
     group_id = comm.rank // ranks_per_sim
     group = comm.Split(group_id, comm.rank)
     model = SkinModel(config, group, mesh_dir=mesh_dir)
-    _collective(comm, lambda: _prepare_file(out, config, model, plan, force))
+    _on_root(comm, lambda: _prepare_file(out, config, model, plan, force))
     status = comm.bcast(StrainDataset.open(out).status if comm.rank == 0 else None)
     todo = pending_simulations(status, shard, retry_failed)
     writer = _Writer(out, comm, len(todo), progress) if comm.rank == 0 else None

@@ -33,14 +33,13 @@ import joblib
 import numpy as np
 import torch
 
-from skinfem.io import STATUS_OK, StrainDataset
+from skinfem.io import COMPONENTS, STATUS_OK, StrainDataset
 from skinfem.outputs import write_text
 from surrogate.error_model import FOLDS, HeldOutExcess, cross_validated_excess, design_correlation, material_folds
 from surrogate.gp import GPBank, fit_gps
 from surrogate.pca import StrainPCA
 
 INPUT_NAMES = ("mu", "k1", "k2", "kappa", "theta", "alpha11_t", "alpha22_t")
-COMPONENTS = ("xx", "yy", "xy")
 FORMAT = "skinid-emulator"
 FORMAT_VERSION = 1
 REFIT = "refit the emulator with 'skinid surrogate fit'"

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from inference.criticism.calibration import Calibration
 from inference.criticism.data import Data, stack
+from skinfem.io import COMPONENTS
 
 ALPHA = 0.01  # posterior-predictive p below which the residual is "structured" (not noise)
 HOTSPOT_POINTS = 9  # the residual's peak is located over this many nearest measured points
@@ -191,7 +192,7 @@ def residual_metrics(cal: Calibration, data: Data, n_draws: int = 4000, seed: in
     structured = ppc_p < ALPHA
     return ResidualMetrics(
         rmse=float(np.sqrt(np.mean(r**2))),
-        rmse_by_component={c: float(np.sqrt(np.mean(r[:, i] ** 2))) for i, c in enumerate(("xx", "yy", "xy"))},
+        rmse_by_component={c: float(np.sqrt(np.mean(r[:, i] ** 2))) for i, c in enumerate(COMPONENTS)},
         noise_rms=float(np.sqrt(np.mean(data.noise.sd**2))),
         chi2=chi2,
         dof=n - k,
