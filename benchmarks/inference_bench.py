@@ -103,7 +103,7 @@ def main() -> None:
             "min_ess": summary.min_ess,
             "ess_per_second": summary.min_ess / s.seconds,
             "divergences": summary.divergences,
-            "gp_variance_over_posterior": s.gp_variance_spread,
+            "gp_variance_over_posterior": summary.to_json()["gp_variance_over_posterior"],
             "medians": {n: e.median for n, e in summary.parameters.items()},
         }
         print(gp_variance, json.dumps(results[f"skinid_gp_variance_{gp_variance}{suffix}"]), flush=True)

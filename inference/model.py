@@ -178,6 +178,15 @@ class ObservedWeights:
 
 
 @dataclass(frozen=True)
+class GpVarianceSpread:
+    """The GP variance over posterior draws against the one fixed at the mode: quantiles of their ratio [-]."""
+
+    ratio_median: float
+    ratio_5: float
+    ratio_95: float
+
+
+@dataclass(frozen=True)
 class ErrorBudget:
     """Share of the variance of the observed PC weights held by each term, at one point [-]
     (mean over weights and observations of term / total; the shares sum to 1)."""
@@ -498,7 +507,7 @@ class SkinPosterior:
         self.fixed_shift = shift
         self._density = None
 
-    def gp_variance_spread(self, draws: np.ndarray, n: int = 50, seed: int = 0) -> dict:
+    def gp_variance_spread(self, draws: np.ndarray, n: int = 50, seed: int = 0) -> GpVarianceSpread:
         """How the GP variance (the covariance's diagonal) over ``n`` posterior draws (k, 5)
         compares with the fixed one."""
         rng = np.random.default_rng(seed)
@@ -508,11 +517,11 @@ class SkinPosterior:
             ratios = np.stack(
                 [(self.emulator.predict_weights(self.inputs(torch.as_tensor(p)))[1].T / fixed).numpy() for p in pick]
             )
-        return {
-            "ratio_median": float(np.median(ratios)),
-            "ratio_5": float(np.percentile(ratios, 5)),
-            "ratio_95": float(np.percentile(ratios, 95)),
-        }
+        return GpVarianceSpread(
+            ratio_median=float(np.median(ratios)),
+            ratio_5=float(np.percentile(ratios, 5)),
+            ratio_95=float(np.percentile(ratios, 95)),
+        )
 
     def model_warnings(self, scale_median: float | None = None) -> list[str]:
         """What the summary must say about the model itself: an emulator without a held-out

@@ -42,7 +42,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from inference.model import ErrorBudget, ObservedFields, SkinPosterior, prior_draws
+from inference.model import ErrorBudget, GpVarianceSpread, ObservedFields, SkinPosterior, prior_draws
 from skinfem.config import PARAM_NAMES
 from skinfem.io import COMPONENTS
 from skinfem.outputs import write_atomically
@@ -489,15 +489,6 @@ class ParameterSummary:
 
 
 @dataclass(frozen=True)
-class GpVarianceSpread:
-    """The GP variance over posterior draws against the one fixed at the mode: quantiles of their ratio [-]."""
-
-    ratio_median: float
-    ratio_5: float
-    ratio_95: float
-
-
-@dataclass(frozen=True)
 class PosteriorSummary:
     """What ``summary.json`` holds (:func:`write_outputs`); :meth:`to_json` is its exact content.
 
@@ -600,7 +591,7 @@ class PosteriorSamples:
     prior: np.ndarray  # (n_prior, dim) prior draws
     data: dict[str, dict[str, np.ndarray]]  # observed_data, constant_data (see data_groups)
     attrs: dict[str, dict]  # per group, "/" for the root (see file_attrs)
-    gp_variance_spread: dict | None = None
+    gp_variance_spread: GpVarianceSpread | None = None
     error_budget: ErrorBudget | None = None
     error_budget_at: np.ndarray | None = None  # (5,) the posterior medians it was evaluated at
     model_warnings: tuple[str, ...] = ()  # SkinPosterior.model_warnings
@@ -641,9 +632,7 @@ class PosteriorSamples:
             step_sizes=tuple(self.step_sizes),
             acceptance_rates=tuple(self.acceptance_rates),
             seconds=self.seconds,
-            gp_variance_over_posterior=None
-            if self.gp_variance_spread is None
-            else GpVarianceSpread(**self.gp_variance_spread),
+            gp_variance_over_posterior=self.gp_variance_spread,
             error_budget=self.error_budget,
             error_budget_statement=None
             if self.error_budget is None

@@ -18,11 +18,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from inference.model import ErrorBudget
+from inference.model import ErrorBudget, GpVarianceSpread
 from inference.sampling import (
     ESS_LIMIT,
     RHAT_LIMIT,
-    GpVarianceSpread,
     ParameterSummary,
     PosteriorSamples,
     PosteriorSummary,
@@ -195,7 +194,7 @@ def fake_samples(
         prior=np.zeros((10, 7)),
         data={},
         attrs={},
-        gp_variance_spread={"ratio_median": 1.01, "ratio_5": 0.9, "ratio_95": 1.2} if spread else None,
+        gp_variance_spread=GpVarianceSpread(1.01, 0.9, 1.2) if spread else None,
         error_budget=ErrorBudget(0.2, 0.3, 0.1, 0.4) if budget else None,
         error_budget_at=draws[0, 1, :5],
         model_warnings=model_warnings,
@@ -234,7 +233,7 @@ def legacy_summary(samples: PosteriorSamples) -> dict:
             messages.append(f"{n}: ESS {min(e['ess_bulk'], e['ess_tail']):.0f} < {ESS_LIMIT}")
     if samples.diverging.any():
         messages.append(f"{int(samples.diverging.sum())} divergent transitions")
-    budget = samples.error_budget
+    budget, spread = samples.error_budget, samples.gp_variance_spread
     return {
         "parameters": out,
         "chains": 4,
@@ -243,7 +242,7 @@ def legacy_summary(samples: PosteriorSamples) -> dict:
         "step_sizes": samples.step_sizes,
         "acceptance_rates": samples.acceptance_rates,
         "seconds": samples.seconds,
-        "gp_variance_over_posterior": samples.gp_variance_spread,
+        "gp_variance_over_posterior": None if spread is None else asdict(spread),
         "error_budget": None if budget is None else asdict(budget),
         "error_budget_statement": None if budget is None else budget.statement(samples.error_budget_at),
         "warnings": messages,
