@@ -601,7 +601,7 @@ def _test_set(args, emulator, data) -> None:
         args.out,
         _ints(args.materials, "--materials"),
     )
-    print(json.dumps(res, indent=2))
+    print(json.dumps(res.to_json(), indent=2))
     print(f"wrote {args.out}/study.json and accuracy.png")
 
 
@@ -643,7 +643,7 @@ def _setups(args, emulator, data, designs: list[int]) -> None:
         for label, (d, f) in setups.items()
     }
     setups_plot(results, args.out / "setups.png")
-    print(json.dumps({k: v["median_interval_share_of_prior"] for k, v in results.items()}, indent=2))
+    print(json.dumps({k: v.median_interval_share_of_prior for k, v in results.items()}, indent=2))
     print(f"wrote {args.out}/setups.png")
 
 

@@ -115,7 +115,7 @@ def test_set_study(
     out: Path | str,
     materials: list[int] | None = None,
     label: str | None = None,
-) -> dict:
+) -> StudyResult:
     """Posteriors of every test material (or ``materials``) for one setup, accuracy + coverage.
 
     Writes ``<out>/material_<i>/`` per material (resumable: finished materials are reused),
@@ -142,21 +142,23 @@ def test_set_study(
         out / "accuracy.png",
         f"{label}: posterior median and 95 % interval vs truth ({len(summaries)} test materials)",
     )
-    result = {
-        "setup": {"designs": designs, "frames": frames, "label": label},
-        "materials": [int(i) for i in materials],
-        "coverage_95": coverage,
-        "median_interval_share_of_prior": width,
-        "identified": identified,
-        "max_r_hat": float(max(s.parameters[n].r_hat for s in summaries for n in names)),
-    }
-    write_text(out / "study.json", json.dumps(result, indent=2) + "\n")
+    result = StudyResult(
+        designs=designs,
+        frames=frames,
+        label=label,
+        materials=[int(i) for i in materials],
+        coverage_95=coverage,
+        median_interval_share_of_prior=width,
+        identified=identified,
+        max_r_hat=float(max(s.parameters[n].r_hat for s in summaries for n in names)),
+    )
+    write_text(out / "study.json", json.dumps(result.to_json(), indent=2) + "\n")
     return result
 
 
 @dataclass(frozen=True)
 class StudyResult:
-    """study.json (written by :func:`test_set_study`) read back; per-parameter values by name
+    """A test-set study (:func:`test_set_study`), as its study.json holds it; per-parameter values by name
     ("mu", "k1", "k2", "kappa", "theta").
 
     Attributes:
@@ -192,6 +194,17 @@ class StudyResult:
             max_r_hat=d["max_r_hat"],
         )
 
+    def to_json(self) -> dict:
+        """The content of study.json (:meth:`from_json` reads it back)."""
+        return {
+            "setup": {"designs": self.designs, "frames": self.frames, "label": self.label},
+            "materials": self.materials,
+            "coverage_95": self.coverage_95,
+            "median_interval_share_of_prior": self.median_interval_share_of_prior,
+            "identified": self.identified,
+            "max_r_hat": self.max_r_hat,
+        }
+
 
 def read_study(path: Path | str) -> StudyResult:
     """A study.json that :func:`test_set_study` wrote."""
@@ -219,7 +232,7 @@ def spread_designs(designs: np.ndarray, first: int, n: int) -> list[int]:
     return chosen
 
 
-def setups_plot(results: dict[str, dict], path: Path | str) -> Path:
+def setups_plot(results: dict[str, StudyResult], path: Path | str) -> Path:
     """Median 95 %-interval width (share of the prior range) per parameter and setup (Fig. 8)."""
     plt = pyplot()
 
@@ -227,7 +240,7 @@ def setups_plot(results: dict[str, dict], path: Path | str) -> Path:
     fig, ax = plt.subplots(figsize=(8, 3.8))
     width = 0.8 / len(results)
     for k, (label, res) in enumerate(results.items()):
-        values = [res["median_interval_share_of_prior"][n] for n in names]
+        values = [res.median_interval_share_of_prior[n] for n in names]
         ax.bar(np.arange(5) + k * width, values, width, label=label)
     ax.set_xticks(np.arange(5) + 0.4 - width / 2, [LABELS[n] for n in names])
     ax.set_ylabel("95 % interval / prior range [-]")
@@ -262,7 +275,7 @@ def noise_study(
     levels: tuple[float, ...] = (0.01, 0.05, 0.10),
     materials: list[int] | None = None,
     fit_options: dict | None = None,
-) -> dict:
+) -> dict[str, NoiseCase]:
     """The paper's noise study on ``data`` (clean): per case a noisy copy, an emulator fitted on
     its training materials only (with the clean case's number of PCs), validation on its test
     materials, and test-set posteriors for one design (last frame). Resumable: finished files
@@ -302,17 +315,18 @@ def noise_study(
             materials,
             label=f"{name}: design {design}",
         )
-        results[name] = {
-            "data": str(path),
-            "noise": None if noise is None else {"length_mm": noise[0], "level": noise[1]},
-            "explained_variance": {
+        results[name] = NoiseCase(
+            data=str(path),
+            length_mm=None if noise is None else noise[0],
+            level=None if noise is None else noise[1],
+            study=study,
+            explained_variance={
                 c: np.cumsum(p.explained_variance_ratio_)[:12].tolist() for c, p in emulator.pcas.items()
             },
-            "n_components": emulator.n_weights,
-            "r2_per_pc": {c: list(r.r2_per_pc) for c, r in report.components.items()},
-            "study": study,
-        }
-    write_text(out / "noise_study.json", json.dumps(results, indent=2) + "\n")
+            n_components=dict(emulator.n_weights),
+            r2_per_pc={c: [float(v) for v in r.r2_per_pc] for c, r in report.components.items()},
+        )
+    write_text(out / "noise_study.json", json.dumps({n: c.to_json() for n, c in results.items()}, indent=2) + "\n")
     explained_variance_plot(results, out / "explained_variance.png")
     sensitivity_maps(
         out,
@@ -335,17 +349,43 @@ class NoiseCase:
         length_mm, level: the added noise's length scale [mm] and level (share of the training
             data's max |strain|); None for the clean case.
         study: the test-set study of the case.
+        explained_variance: per component, the cumulative explained variance of the first 12 PCs [-].
+        n_components: per component, the PCs the case's emulator keeps.
+        r2_per_pc: per component, the GPs' R² per PC on the held-out materials [-].
     """
 
     data: str | None
     length_mm: float | None
     level: float | None
     study: StudyResult
+    explained_variance: dict[str, list[float]]
+    n_components: dict[str, int]
+    r2_per_pc: dict[str, list[float]]
 
     @classmethod
     def from_json(cls, d: dict) -> NoiseCase:
         noise = d["noise"] or {"length_mm": None, "level": None}
-        return cls(d.get("data"), noise["length_mm"], noise["level"], StudyResult.from_json(d["study"]))
+        return cls(
+            data=d.get("data"),
+            length_mm=noise["length_mm"],
+            level=noise["level"],
+            study=StudyResult.from_json(d["study"]),
+            explained_variance=d["explained_variance"],
+            n_components=d["n_components"],
+            r2_per_pc=d["r2_per_pc"],
+        )
+
+    def to_json(self) -> dict:
+        """The case's entry in noise_study.json (:meth:`from_json` reads it back)."""
+        noise = None if self.length_mm is None else {"length_mm": self.length_mm, "level": self.level}
+        return {
+            "data": self.data,
+            "noise": noise,
+            "explained_variance": self.explained_variance,
+            "n_components": self.n_components,
+            "r2_per_pc": self.r2_per_pc,
+            "study": self.study.to_json(),
+        }
 
 
 def read_noise_study(path: Path | str) -> dict[str, NoiseCase]:
@@ -364,7 +404,7 @@ def _case_emulator(data: StrainDataset, folder: Path, fit_options: dict) -> Emul
     return emulator
 
 
-def explained_variance_plot(results: dict, path: Path) -> Path:
+def explained_variance_plot(results: dict[str, NoiseCase], path: Path) -> Path:
     """Cumulative explained variance per case and component (the paper's Fig. 4).
 
     Cases that coincide stay visible: line style and marker by noise length scale ℓ, colour by
@@ -374,29 +414,28 @@ def explained_variance_plot(results: dict, path: Path) -> Path:
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
-    comps = list(next(iter(results.values()))["explained_variance"])
-    noise = {name: res.get("noise") for name, res in results.items()}
-    lengths = sorted({v["length_mm"] for v in noise.values() if v})
-    levels = sorted({v["level"] for v in noise.values() if v})
+    comps = list(next(iter(results.values())).explained_variance)
+    noisy = [res for res in results.values() if res.length_mm is not None]
+    lengths = sorted({res.length_mm for res in noisy})
+    levels = sorted({res.level for res in noisy})
     styles = [("-", "o"), ("--", "s"), (":", "^"), ("-.", "D"), ((0, (5, 1, 1, 1, 1, 1)), "v")]
     colours = plt.get_cmap("plasma")(np.linspace(0.05, 0.75, max(len(levels), 1)))
     offsets = np.linspace(-0.3, 0.3, len(results)) if len(results) > 1 else np.zeros(1)
-    lowest = min(min(ev) for res in results.values() for ev in res["explained_variance"].values())
+    lowest = min(min(ev) for res in results.values() for ev in res.explained_variance.values())
     fig, axes = plt.subplots(1, len(comps), figsize=(4.6 * len(comps) + 2.4, 4.2), squeeze=False)
     for ax, c in zip(axes[0], comps):
         for (name, res), dx in zip(results.items(), offsets):
-            ev = np.asarray(res["explained_variance"][c])
-            case = noise[name]
-            if case is None:
+            ev = np.asarray(res.explained_variance[c])
+            if res.length_mm is None:
                 style = {"color": "k", "ls": "-", "marker": "o", "lw": 2.0, "label": name}
             else:
-                ls, marker = styles[lengths.index(case["length_mm"]) % len(styles)]
+                ls, marker = styles[lengths.index(res.length_mm) % len(styles)]
                 style = {
-                    "color": colours[levels.index(case["level"])],
+                    "color": colours[levels.index(res.level)],
                     "ls": ls,
                     "marker": marker,
                     "lw": 1.4,
-                    "label": f"{name}: ℓ = {case['length_mm']:g} mm, level {case['level'] * 100:g} %",
+                    "label": f"{name}: ℓ = {res.length_mm:g} mm, level {res.level * 100:g} %",
                 }
             ax.plot(np.arange(1, len(ev) + 1) + dx, ev, ms=4, **style)
         ax.axhline(0.99, color="0.5", ls="--", lw=0.8, label="99 %")
@@ -444,7 +483,7 @@ def sensitivity_maps(out: Path, cases: list[str], design: int, alpha: np.ndarray
     return save_figure(fig, path)
 
 
-def write_noise_report(results: dict, out: Path) -> Path:
+def write_noise_report(results: dict[str, NoiseCase], out: Path) -> Path:
     """``<out>/README.md``: figures, R² tables, identification table next to the paper's findings."""
     names = list(LABELS)
     lines = [
@@ -460,8 +499,8 @@ def write_noise_report(results: dict, out: Path) -> Path:
         "## GP R² per PC on held-out materials",
         "",
     ]
-    for c in next(iter(results.values()))["r2_per_pc"]:
-        width = max(len(r["r2_per_pc"][c]) for r in results.values())
+    for c in next(iter(results.values())).r2_per_pc:
+        width = max(len(r.r2_per_pc[c]) for r in results.values())
         lines += [
             f"**E_{c}**",
             "",
@@ -469,7 +508,7 @@ def write_noise_report(results: dict, out: Path) -> Path:
             "|---|---|" + "---|" * width,
         ]
         for name, r in results.items():
-            vals = r["r2_per_pc"][c]
+            vals = r.r2_per_pc[c]
             lines.append(
                 f"| {name} | {len(vals)} | " + " | ".join(f"{v:.3f}" for v in vals) + " |" + " |" * (width - len(vals))
             )
@@ -484,9 +523,9 @@ def write_noise_report(results: dict, out: Path) -> Path:
         "|---|" + "---|" * 6,
     ]
     for name, r in results.items():
-        s = r["study"]
-        cells = [f"{s['coverage_95'][n]:.0%} / {s['median_interval_share_of_prior'][n]:.2f}" for n in names]
-        ident = ", ".join(LABELS[n].split(" ")[0] for n in names if s["identified"][n]) or "none"
+        s = r.study
+        cells = [f"{s.coverage_95[n]:.0%} / {s.median_interval_share_of_prior[n]:.2f}" for n in names]
+        ident = ", ".join(LABELS[n].split(" ")[0] for n in names if s.identified[n]) or "none"
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {ident} |")
     lines += [
         "",

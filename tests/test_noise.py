@@ -76,12 +76,13 @@ def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
     )
     assert set(results) == {"clean", "m5"}
     for c in ("xx", "yy"):
-        assert results["m5"]["explained_variance"][c][2] < results["clean"]["explained_variance"][c][2]
+        assert results["m5"].explained_variance[c][2] < results["clean"].explained_variance[c][2]
     report = (tmp_path / "README.md").read_text()
     assert "| m5 |" in report and "Paper (noise)" in report
     for name in ("explained_variance.png", "sensitivity.png", "noise_study.json", "cases/m5/posteriors/accuracy.png"):
         assert (tmp_path / name).exists(), name
     cases = read_noise_study(tmp_path / "noise_study.json")
+    assert cases == results  # the file holds what the study returns
     assert (cases["clean"].level, cases["m5"].length_mm, cases["m5"].level) == (None, 1.0, 0.05)
     assert cases["m5"].data == str(tmp_path / "cases" / "m5" / "data.h5")
     assert cases["m5"].study.designs == [2] and cases["m5"].study.materials == [material]

@@ -77,6 +77,9 @@ def test_the_side_by_side_table_has_a_row_per_case_and_run(paper_mesh, tmp_path)
         names = paper_mesh.PARAMS
         return {
             "noise": None,
+            "explained_variance": {},
+            "n_components": {},
+            "r2_per_pc": {},
             "study": {
                 "setup": {"designs": [0], "frames": [-1], "label": "design 0"},
                 "materials": [1, 2],

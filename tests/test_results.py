@@ -305,8 +305,8 @@ def test_test_set_study_resumes_from_summary_files(tmp_path, monkeypatch):
         SimpleNamespace(param_bounds=BOUNDS), None, [7], [-1], studies.SamplerSettings(), tmp_path, materials=[3, 5]
     )
     assert (tmp_path / "accuracy.png").read_bytes()[:4] == b"\x89PNG"
-    assert json.loads((tmp_path / "study.json").read_text()) == result
     study = studies.read_study(tmp_path / "study.json")
+    assert study == result
     mu = [s.parameters["mu"] for s in summaries.values()]
     assert (study.designs, study.frames, study.materials) == ([7], [-1], [3, 5])
     assert study.coverage_95["mu"] == np.mean([p.covered for p in mu])
