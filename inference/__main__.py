@@ -272,15 +272,31 @@ def _measurement_parser(parser: argparse.ArgumentParser) -> None:
     add_output(p, "figure (.png)")
 
 
+def _study_command(sub, name: str, help: str, data: str, emulator: bool = True) -> argparse.ArgumentParser:
+    """One ``skinid study`` command with its inputs: the emulator (when it takes one) and a dataset."""
+    p = sub.add_parser(name, help=help)
+    if emulator:
+        p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
+    p.add_argument("--data", type=Path, required=True, help=data)
+    return p
+
+
+def _study_outputs(
+    p: argparse.ArgumentParser, materials: str = "subset of materials (default: the test split)"
+) -> None:
+    """The options every study ends with: its materials, its (resumable) directory, the sampler."""
+    p.add_argument("--materials", help=materials)
+    add_output(p, "study directory", resumable=True)
+    _add_sampler(p)
+
+
 def _study_parser(parser: argparse.ArgumentParser) -> None:
     """``skinid study test-set|setups|noise|coverage``: many posteriors.
 
     Declarative, longer than a screen: one block of options per study.
     """
     sub = parser.add_subparsers(dest="study", required=True)
-    p = sub.add_parser("test-set", help="posteriors of every test material for one setup")
-    p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-    p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
+    p = _study_command(sub, "test-set", "posteriors of every test material for one setup", "dataset (.h5)")
     p.add_argument(
         "--designs",
         required=True,
@@ -291,12 +307,8 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         default="-1",
         help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 (write the '=': the value starts with '-')",
     )
-    p.add_argument("--materials", help="subset of materials (default: the test split)")
-    add_output(p, "study directory", resumable=True)
-    _add_sampler(p)
-    p = sub.add_parser("setups", help="single vs multi-frame vs multi-membrane (the paper's Fig. 8)")
-    p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-    p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
+    _study_outputs(p)
+    p = _study_command(sub, "setups", "single vs multi-frame vs multi-membrane (the paper's Fig. 8)", "dataset (.h5)")
     add_renamed_option(
         p,
         "--designs",
@@ -310,19 +322,12 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         help="the multi-membrane setup's other designs, e.g. '0,13' or '-0.05,0.05,0.05,0.05' "
         "(default: the n - 1 designs farthest apart in alpha)",
     )
-    p.add_argument("--materials", help="subset of materials (default: the test split)")
-    add_output(p, "study directory", resumable=True)
-    _add_sampler(p)
-    p = sub.add_parser(
+    _study_outputs(p)
+    p = _study_command(
+        sub,
         "coverage",
-        help="coverage of the 50 %% / 95 %% intervals and truth ranks over many held-out cases (inference.coverage)",
-    )
-    p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-    p.add_argument(
-        "--data",
-        type=Path,
-        required=True,
-        help="dataset (.h5) of test materials (its test split), on the emulator's mesh",
+        "coverage of the 50 %% / 95 %% intervals and truth ranks over many held-out cases (inference.coverage)",
+        "dataset (.h5) of test materials (its test split), on the emulator's mesh",
     )
     p.add_argument(
         "--setup",
@@ -343,11 +348,14 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         type=int,
         help="starting designs per material, rotating with the material (default: all; 1: independent cases)",
     )
-    p.add_argument("--materials", help="subset of materials (default: the test split)")
-    add_output(p, "study directory", resumable=True)
-    _add_sampler(p)
-    p = sub.add_parser("noise", help="the paper's 9 noise cases: PCA, GP R², test-set posteriors")
-    p.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
+    _study_outputs(p)
+    p = _study_command(
+        sub,
+        "noise",
+        "the paper's 9 noise cases: PCA, GP R², test-set posteriors",
+        "clean dataset (.h5)",
+        emulator=False,
+    )
     add_renamed_option(
         p,
         "--designs",
@@ -363,11 +371,9 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         default=[0.01, 0.05, 0.10],
         help="noise amplitudes as fractions of the max |strain| of the training data",
     )
-    p.add_argument("--materials", help="subset of test materials (default: the test split)")
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
-    add_output(p, "study directory", resumable=True)
-    _add_sampler(p)
+    _study_outputs(p, "subset of test materials (default: the test split)")
 
 
 PARSERS = {
