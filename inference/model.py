@@ -331,6 +331,8 @@ class SkinPosterior:
         return torch.cat([params, torch.exp(u[..., 5:])], -1)
 
     def unconstrain(self, values: torch.Tensor) -> torch.Tensor:
+        """(..., dim) parameters -> unbounded coordinates: logit of the five skin parameters'
+        share of their prior box, log of the positive rest (noise sd, emulator scale)."""
         z = ((values[..., :5] - self.lower) / self.span).clamp(1e-9, 1 - 1e-9)
         return torch.cat([torch.logit(z), torch.log(values[..., 5:])], -1)
 
@@ -406,6 +408,8 @@ class SkinPosterior:
     def log_likelihood(
         self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
     ) -> torch.Tensor:
+        """log p(observed weights | params (5,), sigma (n_sigma,) noise sd [strain], emulator ``scale``):
+        a scalar, differentiable in every argument."""
         white, log_diag = self.whitened_residuals(params, sigma, scale)
         return -0.5 * torch.sum(white**2) - torch.sum(log_diag) - 0.5 * white.numel() * math.log(2 * math.pi)
 

@@ -408,6 +408,7 @@ class SkinModel:
         return solve.converged
 
     def load_fractions(self) -> np.ndarray:
+        """(increments,) the load fractions t of the saved frames: 1/n, 2/n, ..., 1."""
         n = self.config.solver.increments
         return np.arange(1, n + 1) / n
 

@@ -53,6 +53,7 @@ class SkinParams:
 
     @classmethod
     def from_array(cls, values) -> SkinParams:
+        """From the five values (mu, k1, k2, kappa, theta) in this order and these units (theta in degrees)."""
         return cls(*(float(v) for v in values))
 
 

@@ -63,6 +63,7 @@ class TrainingRows:
 
     @classmethod
     def from_dataset(cls, data: StrainDataset, materials: np.ndarray) -> TrainingRows:
+        """Every converged (design, frame) row of the given material indices."""
         index, inputs, fields = [], [], []
         for i in materials:
             strain = data.strain(int(i))  # (n_des, n_frames, n_cells, 3)

@@ -184,6 +184,8 @@ class Data:
         return (self.fields - model_fields) / self.total_sd
 
     def whitened_residual(self, model_fields: np.ndarray) -> np.ndarray:
+        """(n_obs, n_pts, 3) model fields -> the measurement's whitened residual, same shape (NaN
+        off the mask), under the stated noise and the carried model error."""
         return self.noise.whiten(self.fields - model_fields, self.xy, self.masks, self.model_error)
 
     def chi2_of_noise_factor(self, model_fields: np.ndarray) -> Callable[[float], float]:
