@@ -835,8 +835,9 @@ def _dic_field(args, settings):
 
 
 def _measurement_show(args, settings) -> None:
-    from inference.dic_import import assess_plausibility, plot_field
+    from inference.dic_import import assess_plausibility
     from inference.observations import HEADER, read_measurement
+    from inference.plots import plot_field
 
     if args.file.is_file() and args.file.read_bytes().startswith(HEADER.encode()):
         m = read_measurement(args.file, settings.block_half)

@@ -19,7 +19,6 @@ import csv
 import math
 import re
 import shlex
-import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +32,6 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
-from skinfem.io import COMPONENTS
 from skinfem.outputs import write_atomically
 
 FORMATS = ("vic", "vic9", "davis8", "davis10", "dice", "table")
@@ -905,26 +903,3 @@ def likely_cause(measured: np.ndarray, imposed: np.ndarray, ratio: float, cosine
 
 
 # ---------------------------------------------------------------- figure
-
-
-def plot_field(xy: np.ndarray, strain: np.ndarray, path: Path | str, membrane_half: float, title: str = "") -> Path:
-    """Scatter maps of log strain xx, yy, xy at the points (n, 2) [mm], membrane outline dashed."""
-    from inference.plots import pyplot, save_figure
-
-    plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
-    h = membrane_half
-    for ax, values, name in zip(axes, strain.T, COMPONENTS):
-        vmax = max(float(np.abs(values).max()), 1e-12)
-        im = ax.scatter(xy[:, 0], xy[:, 1], c=values, s=12, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-        ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)
-        ax.annotate("", xy=(0.6 * h, 0), xytext=(0, 0), arrowprops=dict(arrowstyle="->", lw=1.2))
-        ax.set_aspect("equal")
-        ax.set_xlabel("x [mm] (α11 direction)")
-        ax.set_ylabel("y [mm]")
-        ax.set_title(f"log strain {name}", fontsize=10)
-        fig.colorbar(im, ax=ax, shrink=0.85)
-    if title:
-        lines = [wrapped for line in title.splitlines() for wrapped in textwrap.wrap(line, 130)]
-        fig.suptitle("\n".join(lines), fontsize=10)
-    return save_figure(fig, path)

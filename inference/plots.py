@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from skinfem.io import COMPONENTS
 from skinfem.outputs import save_figure
 
 if TYPE_CHECKING:
@@ -178,8 +180,7 @@ def field_grid(
                 vmax=vmax,
             )
             tri.set_mask(None)
-            h = membrane_half
-            ax.plot([-h, h, h, -h, -h], [-h, -h, h, h, -h], "k--", lw=1)
+            membrane_outline(ax, membrane_half)
             if theta_deg is not None:
                 t = np.radians(theta_deg)
                 tail = -0.9 * window
@@ -201,4 +202,30 @@ def field_grid(
             ax.axis("off")
     if suptitle:
         fig.suptitle(suptitle, fontsize=11)
+    return save_figure(fig, path)
+
+
+def membrane_outline(ax, half: float) -> None:
+    """The membrane's square outline (half side ``half`` [mm]), dashed."""
+    ax.plot([-half, half, half, -half, -half], [-half, -half, half, half, -half], "k--", lw=1)
+
+
+def plot_field(xy: np.ndarray, strain: np.ndarray, path: Path | str, membrane_half: float, title: str = "") -> Path:
+    """Scatter maps of log strain xx, yy, xy at the points (n, 2) [mm], membrane outline dashed."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    h = membrane_half
+    for ax, values, name in zip(axes, strain.T, COMPONENTS):
+        vmax = max(float(np.abs(values).max()), 1e-12)
+        im = ax.scatter(xy[:, 0], xy[:, 1], c=values, s=12, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+        membrane_outline(ax, h)
+        ax.annotate("", xy=(0.6 * h, 0), xytext=(0, 0), arrowprops=dict(arrowstyle="->", lw=1.2))
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [mm] (α11 direction)")
+        ax.set_ylabel("y [mm]")
+        ax.set_title(f"log strain {name}", fontsize=10)
+        fig.colorbar(im, ax=ax, shrink=0.85)
+    if title:
+        lines = [wrapped for line in title.splitlines() for wrapped in textwrap.wrap(line, 130)]
+        fig.suptitle("\n".join(lines), fontsize=10)
     return save_figure(fig, path)

@@ -18,7 +18,7 @@ import inference.plots
 import inference.studies
 import surrogate.validation
 from inference.plots import LABELS, corner_plot
-from inference.studies import case_name, explained_variance_plot, sensitivity_maps
+from inference.studies import NoiseCase, case_name, explained_variance_plot, sensitivity_maps
 from skinfem.outputs import save_figure
 from surrogate.emulator import Emulator, EmulatorProvenance
 from surrogate.gp import GPBank, fit_gps
@@ -98,17 +98,18 @@ def test_corner_plot_labels_moduli_in_mpa_and_spans_the_prior_box(tmp_path, capt
 
 
 # -- the noise study's explained variance --------------------------------------------------------
-def fake_results(lengths=(0.1, 1.0, 5.0), levels=(0.01, 0.05, 0.10)) -> dict:
-    """noise_study's results: every case with the clean curves (all coincide) plus the noise entry."""
+def fake_results(lengths=(0.1, 1.0, 5.0), levels=(0.01, 0.05, 0.10)) -> dict[str, NoiseCase]:
+    """noise_study's results: every case with the clean curves (all coincide) plus its noise."""
     curve = np.cumsum([0.7, 0.2, 0.05, 0.03, 0.01, 0.005, 0.002, 0.001]).tolist()
     ev = {c: curve for c in ("xx", "yy", "xy")}
-    results = {"clean": {"noise": None, "explained_variance": ev}}
+
+    def case(length: float | None, level: float | None) -> NoiseCase:
+        return NoiseCase(None, length, level, study=None, explained_variance=ev, n_components={}, r2_per_pc={})
+
+    results = {"clean": case(None, None)}
     for length in lengths:
         for level in levels:
-            results[case_name(length, level)] = {
-                "noise": {"length_mm": length, "level": level},
-                "explained_variance": ev,
-            }
+            results[case_name(length, level)] = case(length, level)
     return results
 
 
