@@ -79,7 +79,7 @@ def run_one(config_source: str, out: str, mesh_dir: str, refactor_krylov: int, p
     config = dataclasses.replace(config, solver=dataclasses.replace(config.solver, refactor_krylov=refactor_krylov))
     t0 = time.perf_counter()
     model = SkinModel(config, comm, mesh_dir=mesh_dir)
-    options = PETSc.Options(model._prefix)
+    options = PETSc.Options(model.problem.solver.getOptionsPrefix())
     for item in petsc:
         key, _, value = item.partition("=")
         options[key] = value

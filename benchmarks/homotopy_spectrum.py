@@ -48,7 +48,7 @@ def newton_toward(model, rhs) -> tuple[bool, int]:
     from skinfem.fenics import PETSc, dolfinx
 
     snes, x = model.problem.solver, model.problem.x
-    model._set_snes_option("snes_lag_preconditioner", 1)
+    model.set_snes_option("snes_lag_preconditioner", 1)
     dolfinx.fem.petsc.assign(model.u, x)
     snes.solve(rhs, x)
     x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
@@ -81,13 +81,13 @@ def main() -> None:
     ramped = model.u.x.array.copy()
     record = {"ramped_equilibrium_smallest_eigenvalues": smallest_eigenvalues(model, free), "path": []}
     model.u.x.array[:] = 0.0
-    model._set_load(1.0, design)
+    model.set_load(1.0, design)
     residual0 = model.problem.b.duplicate()
     dolfinx.fem.petsc.assign(model.u, model.problem.x)
     snes = model.problem.solver
     snes.computeFunction(model.problem.x, residual0)
-    model._set_snes_option("snes_linesearch_type", "bt")
-    model._set_snes_option("snes_max_it", NEWTON_STEPS)
+    model.set_snes_option("snes_linesearch_type", "bt")
+    model.set_snes_option("snes_max_it", NEWTON_STEPS)
     for s in args.fractions:
         rhs = residual0.copy()
         rhs.scale(1.0 - s)

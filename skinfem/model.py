@@ -303,7 +303,8 @@ class SkinModel:
                 self._driver.append((g, i, alpha))
         return bcs
 
-    def _set_load(self, t: float, design: Design) -> None:
+    def set_load(self, t: float, design: Design) -> None:
+        """The membrane's eigen-strain (or the rigid driver's displacement) at load fraction ``t`` of ``design``."""
         self.alpha11.value = t * design.alpha11
         self.alpha22.value = t * design.alpha22
         if not self.has_membrane:
@@ -336,7 +337,7 @@ class SkinModel:
             "snes_lag_preconditioner_persists": True,
         }
 
-    def _set_snes_option(self, name: str, value) -> None:
+    def set_snes_option(self, name: str, value) -> None:
         """Set one option of this model's SNES: through the options database, which SNES rereads,
         and out of it again, so that later rereads keep the value instead of repeating it."""
         key = f"{self._prefix}{name}"
@@ -348,7 +349,7 @@ class SkinModel:
     def _set_lag(self, lag: int) -> None:
         """PETSc's preconditioner lag: 1 rebuild at every Jacobian, -2 at the next one only and
         then never."""
-        self._set_snes_option("snes_lag_preconditioner", lag)
+        self.set_snes_option("snes_lag_preconditioner", lag)
 
     def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
         """One SNES solve of R(u) = 0 from the current state, factorising the
@@ -471,7 +472,7 @@ class SkinModel:
             return True
         if guess is not None:
             self.u.x.array[:] = guess
-        self._set_load(0.0, design)
+        self.set_load(0.0, design)
         if not newton():
             return False
         self.u_ref.x.array[:] = self.u.x.array
@@ -491,7 +492,7 @@ class SkinModel:
             t_new = ramp.t + ramp.step
             saved = x.copy()
             x[:] = extrapolate(t_new, [(ramp.t, saved), *ramp.history])
-            self._set_load(t_new, design)
+            self.set_load(t_new, design)
             converged, its, krylov = self._newton_escalating(ramp.policy)
             if converged:
                 ramp.history = [(ramp.t, saved), *ramp.history[:1]]
@@ -553,7 +554,7 @@ class SkinModel:
 
         (Over 60 lines only by this docstring: the code is one loop over the frames.)
         """
-        self._set_snes_option("snes_max_it", max_iterations)
+        self.set_snes_option("snes_max_it", max_iterations)
         most = max(factorisation, Factorisation.FIRST_STEP)
 
         def newton(policy: Factorisation, corrected: bool = False) -> tuple[bool, float]:  # (converged, GMRES/step)
@@ -578,7 +579,7 @@ class SkinModel:
             policy, correction = factorisation, None  # correction: last converged frame less its guess
             for t, guess in guesses:
                 self.u.x.array[:] = guess if correction is None else guess + correction
-                self._set_load(t, design)
+                self.set_load(t, design)
                 converged, krylov = newton(policy, correction is not None)
                 if not converged:
                     return False
@@ -590,7 +591,7 @@ class SkinModel:
                     on_frame(float(t))
             return True
         finally:
-            self._set_snes_option("snes_max_it", self.config.solver.max_iterations)
+            self.set_snes_option("snes_max_it", self.config.solver.max_iterations)
 
     @property
     def n_dofs(self) -> int:
