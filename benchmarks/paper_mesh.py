@@ -153,7 +153,7 @@ def study_cases(folder: Path) -> dict[str, list]:
     import arviz as az
 
     from inference.coverage import case_result
-    from inference.sampling import PosteriorSummary
+    from inference.posterior_file import PosteriorSummary
 
     cases = {}
     for case in sorted(p for p in (folder / "cases").iterdir() if (p / "posteriors").is_dir()):
@@ -172,7 +172,7 @@ def study_cases(folder: Path) -> dict[str, list]:
 def noisy_truths(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """(truths (n, 5), prior bounds (n, 5, 2)) of the distinct test materials of a noise study's
     noisy cases, from their posteriors' ``summary.json``."""
-    from inference.sampling import PosteriorSummary
+    from inference.posterior_file import PosteriorSummary
 
     materials = {}
     for path in folder.glob("cases/*/posteriors/material_*/summary.json"):

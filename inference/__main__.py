@@ -450,7 +450,7 @@ def settings_of(args, emulator=None):
 
 
 def print_summary(summary, out: Path) -> None:
-    """The table of an :class:`inference.sampling.PosteriorSummary`, its warnings and error budget."""
+    """The table of an :class:`inference.posterior_file.PosteriorSummary`, its warnings and error budget."""
     width = max(map(len, summary.parameters))
     print(f"{'':>{width}} {'median':>10} {'95 % interval':>24} {'R-hat':>6} {'ESS':>6} {'true':>10}")
     for name, e in summary.parameters.items():

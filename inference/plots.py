@@ -12,7 +12,7 @@ from skinfem.io import COMPONENTS
 from skinfem.outputs import save_figure
 
 if TYPE_CHECKING:
-    from inference.sampling import PosteriorSummary
+    from inference.posterior_file import PosteriorSummary
 
 LABELS = {
     "mu": "μ [MPa]",

@@ -15,7 +15,8 @@ import numpy as np
 from inference.model import ObservedWeights, SkinPosterior
 from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, accuracy_plot, pyplot, save_figure
-from inference.sampling import PosteriorSamples, PosteriorSummary, sample_posterior, write_outputs
+from inference.posterior_file import PosteriorSamples, PosteriorSummary, write_outputs
+from inference.sampling import sample_posterior
 from skinfem.io import StrainDataset
 from skinfem.outputs import write_text
 from surrogate.emulator import Emulator

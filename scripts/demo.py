@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from inference.sampling import PosteriorSummary
+from inference.posterior_file import PosteriorSummary
 from surrogate.validation import ValidationReport
 
 if TYPE_CHECKING:

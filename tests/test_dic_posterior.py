@@ -35,7 +35,7 @@ import pytest
 
 from inference.__main__ import check_strain_scale, main
 from inference.observations import Observation, map_to_cells, read_measurement, write_measurement
-from inference.sampling import PosteriorSummary
+from inference.posterior_file import PosteriorSummary
 from inference.studies import SamplerSettings, posterior_of
 from skinfem.config import PARAM_NAMES, load_config
 from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation

@@ -18,7 +18,8 @@ from inference.observations import (
     to_log_strain,
     write_measurement,
 )
-from inference.sampling import PosteriorSummary, _nuts_kernel, laplace_inverse_mass, sample_posterior
+from inference.posterior_file import PosteriorSummary
+from inference.sampling import _nuts_kernel, laplace_inverse_mass, sample_posterior
 from inference.studies import spread_designs
 from skinfem.io import StrainDataset, design_index
 from surrogate.emulator import Emulator
@@ -324,7 +325,7 @@ class HeldOutPosteriors:
 
 def _held_out_summary(emulator: Emulator, data: StrainDataset, out: Path) -> PosteriorSummary:
     """The paper's single "mixed" observation (last frame) of the first held-out material."""
-    from inference.sampling import write_outputs
+    from inference.posterior_file import write_outputs
 
     material = int(np.flatnonzero(data.split)[0])
     mixed = design_index(data.designs, (0.05, -0.05), data.path)

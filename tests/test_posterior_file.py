@@ -14,7 +14,8 @@ from scipy.stats import invgamma
 from inference.__main__ import main
 from inference.model import ObservedWeights, SkinPosterior, pyro_model
 from inference.observations import Observation, from_dataset, write_measurement
-from inference.sampling import draw_statistics, sample_posterior, write_outputs
+from inference.posterior_file import write_outputs
+from inference.sampling import draw_statistics, sample_posterior
 from skinfem.config import PARAM_NAMES, load_config
 from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
 from surrogate.emulator import Emulator, fit_emulator
@@ -253,7 +254,7 @@ def test_the_parameter_shift_is_recorded_with_its_coupling(emulator, dataset):
     likelihood adds between any two data (the coupled covariance minus its per-PC blocks,
     reordered from (pc, observation) to the file's datum order)."""
     from inference.model import coupled_covariance
-    from inference.sampling import data_groups
+    from inference.posterior_file import data_groups
 
     observations = from_dataset(dataset, 10, designs=[0, 2], frames=[-1])
     post = SkinPosterior(emulator, ObservedWeights.project(emulator, observations), emulator_shift=True)

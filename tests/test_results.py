@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 
 from inference.model import ErrorBudget, GpVarianceSpread
-from inference.sampling import (
+from inference.posterior_file import (
     ESS_LIMIT,
     RHAT_LIMIT,
     ParameterSummary,
     PosteriorSamples,
     PosteriorSummary,
-    quiet_overflow,
     write_outputs,
 )
+from inference.sampling import quiet_overflow
 from surrogate.validation import ComponentValidation, ValidationReport
 
 ROOT = Path(__file__).resolve().parents[1]
