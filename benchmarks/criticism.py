@@ -50,7 +50,7 @@ import numpy as np
 from mpi4py import MPI
 
 if TYPE_CHECKING:
-    from inference.criticism.report import ReportDiagnosis, ReportFile, ReportVersion
+    from inference.criticism.report_file import ReportDiagnosis, ReportFile, ReportVersion
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "criticism.json"
@@ -201,7 +201,7 @@ def check(files, folder: Path, add: list[str], args) -> tuple[ReportFile | None,
     """One ``skinid check`` into ``folder/report`` (its FE runs kept for the next round); returns
     (its report.json on rank 0, else None; seconds)."""
     from inference.__main__ import main as skinid
-    from inference.criticism.report import read_report
+    from inference.criticism.report_file import read_report
 
     given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
     start = time.perf_counter()
@@ -327,7 +327,7 @@ BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitt
 def report_summary(folder: Path) -> dict:
     """From the case's (last) report.json: seconds and FE runs of each phase, the baseline's
     chi^2/dof and posterior-predictive p, its best candidate and the competing larger model error."""
-    from inference.criticism.report import read_report
+    from inference.criticism.report_file import read_report
 
     report = read_report(folder / "report" / "report.json")
     timings = dataclasses.asdict(report.timings)

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.criticism import NoiseModel
-from inference.criticism.report import read_report
+from inference.criticism.report_file import read_report
 from inference.synthetic import synthetic_measurements
 from skinfem.config import config_from_toml
 from skinfem.effects import EFFECTS, prestretch_log_strain

@@ -22,7 +22,7 @@ from inference.posterior_file import PosteriorSummary
 from surrogate.validation import ValidationReport
 
 if TYPE_CHECKING:
-    from inference.criticism.report import ReportFile
+    from inference.criticism.report_file import ReportFile
 
 BIN = Path(sys.executable).parent
 
@@ -80,7 +80,7 @@ def hidden_prestretch_check(out: Path, emu: Path, truth: np.ndarray) -> ReportFi
     """Synthetic measurements of material ``truth`` with a hidden pre-stretch, and their check
     (resumed if a killed run left FE runs); returns its report.json."""
     from inference.criticism import NoiseModel
-    from inference.criticism.report import read_report
+    from inference.criticism.report_file import read_report
     from inference.synthetic import synthetic_measurements
     from skinfem.config import load_config
     from skinfem.effects import prestretch_log_strain

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from inference.criticism import NoiseModel
-from inference.criticism.report import read_report
+from inference.criticism.report_file import read_report
 from skinfem.params import SkinParams
 from tests.cli_helpers import MPIRUN, skinid
 

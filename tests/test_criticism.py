@@ -14,14 +14,14 @@ from mpi4py import MPI
 from inference.criticism import Data, NoiseModel, calibrate, diagnose, rank_regions, residual_metrics
 from inference.criticism.calibration import CHI2_TOLERANCE
 from inference.criticism.diagnosis import score_candidates, signatures
-from inference.criticism.report import (
+from inference.criticism.report import write_report
+from inference.criticism.report_file import (
     ReportDiagnosis,
     ReportDiscretisation,
     ReportFailedRun,
     ReportVersion,
     diagnosis_dict,
     read_report,
-    write_report,
 )
 from inference.forward import ForwardModel, TaylorForward, parameter_space
 from skinfem.effects import EFFECTS, prestretch_log_strain
