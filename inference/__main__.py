@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
@@ -11,425 +10,17 @@ from pathlib import Path
 
 import numpy as np
 
-from skinfem.cli import CommandParser, add_output, add_renamed_option, refuse
-from skinfem.mesh import DEFAULT_MESH_DIR
-
-
-def _add_sampler(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--chains", type=int, default=4, help="NUTS chains")
-    p.add_argument("--warmup", type=int, default=500, help="warm-up (adaptation) steps per chain")
-    p.add_argument("--draws", type=int, default=1000, help="draws per chain after the warm-up")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--jobs", type=int, default=2, help="chains run in parallel (processes)")
-    p.add_argument(
-        "--gp-variance",
-        choices=["exact", "mode"],
-        default="mode",
-        help="GP covariance fixed at the posterior mode (fast; coverage measured on it) or "
-        "evaluated at every step (exact)",
-    )
-    p.add_argument(
-        "--emulator-error",
-        choices=["auto", "on", "scaled", "shift", "off"],  # "auto" + inference.studies.EMULATOR_ERRORS
-        default="auto",
-        help="carry the emulator's held-out error and PCA truncation in the likelihood (on), that "
-        "error times a sampled material scale (scaled), the error as a shift of the parameters "
-        "shared by every observation (shift), or the GP variance only (off); auto (default): shift "
-        "when the emulator fitted it (refit older emulators), else on",
-    )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-
-
-def _ints(text: str | None, option: str) -> list[int] | None:
-    """The indices of a list option such as ``--designs '0,2,4'`` (None if not given)."""
-    if text is None:
-        return None
-    try:
-        return [int(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        raise ValueError(f"{option} must be integers such as '2' or '0,2,4', got '{text}'") from None
-
-
-def design_indices(text: str | None, designs: np.ndarray, path: Path, option: str = "--designs") -> list[int] | None:
-    """Designs of a dataset named by index (``'7'``, ``'7,6,13'``) or by eigen-strain pairs
-    (``'0.05,-0.05'`` or ``'0.05,-0.05,-0.05,0.05'``; a list holding a non-integer is read as
-    (alpha11, alpha22) pairs [-], each matched by :func:`skinfem.io.design_index`).
-
-    Args:
-        designs: (n_des, 2) the dataset's eigen-strains.
-    Returns:
-        Design indices (None if ``text`` is None); indices given as such are not range-checked here.
-    """
-    from skinfem.io import design_index
-
-    if text is None:
-        return None
-    try:
-        return _ints(text, option)
-    except ValueError:
-        pass
-    try:
-        values = np.array([float(v) for v in text.replace(",", " ").split()])
-    except ValueError:
-        raise ValueError(
-            f"{option} takes design indices ('2', '0,2,4') or eigen-strain pairs ('0.05,-0.05'), got '{text}'"
-        ) from None
-    if len(values) == 0 or len(values) % 2:
-        raise ValueError(f"{option} {text}: eigen-strains come in pairs alpha11,alpha22 (e.g. 0.05,-0.05)")
-    try:
-        return [design_index(designs, pair, path) for pair in values.reshape(-1, 2)]
-    except ValueError as exc:
-        raise ValueError(f"{option}: {exc}") from None
-
-
-def _one_design(text: str, designs: np.ndarray, path: Path) -> int:
-    """The single design of ``--designs`` (index or one eigen-strain pair)."""
-    indices = design_indices(text, designs, path)
-    if len(indices) != 1:
-        raise ValueError(f"--designs names one design here (an index or alpha11,alpha22), got '{text}'")
-    return indices[0]
-
-
-def _check_indices(option: str, values: list[int] | None, size: int, path: Path, negative: bool = True) -> None:
-    """Refuse indices outside a dataset's ``size`` entries (negative ones count from the end if allowed)."""
-    for v in values or []:
-        if not (-size if negative else 0) <= v < size:
-            raise ValueError(f"{option} {v} is not in [0, {size}) of {path}")
-
-
-def check_sampler(args) -> None:
-    """Refuse sampler options that cannot give a posterior (before any input is read)."""
-    for option, value, least in (
-        ("--chains", args.chains, 1),
-        ("--draws", args.draws, 1),
-        ("--warmup", args.warmup, 0),
-        ("--jobs", args.jobs, 1),
-    ):
-        if value < least:
-            raise ValueError(f"{option} must be >= {least}, got {value}")
-
-
-def check_same_mesh(data, emulator) -> None:
-    """Refuse a dataset simulated on another mesh than the emulator's training data (the PC basis
-    belongs to that mesh's cells, even when the cell count is the same)."""
-    if data.mesh_sha256 != emulator.provenance.mesh_sha256 or data.xy.shape != emulator.xy.shape:
-        raise ValueError(
-            f"'{data.path}' was simulated on another mesh than the emulator's dataset "
-            f"'{emulator.provenance.dataset}' (mesh sha256 {data.mesh_sha256[:12]}... vs "
-            f"{emulator.provenance.mesh_sha256[:12]}...)"
-        )
-
-
-def check_strain_scale(m, membrane_half: float) -> None:
-    """Refuse a measurement whose strains are far larger than its design imposes: strains in percent."""
-    from inference.dic_import import RATIO_RANGE, assess_plausibility
-    from inference.observations import MeasurementError
-
-    ratio = assess_plausibility(m.xy, m.strain, m.alpha, m.t, membrane_half).ratio
-    if ratio > RATIO_RANGE[1]:
-        raise MeasurementError(
-            f"{m.path}: the mean strain under the membrane is {ratio:.3g}x the design's "
-            "ln(1 + t·alpha): strains in percent? a measurement file holds fractions"
-        )
-
-
-def build_parser(prog: str) -> argparse.ArgumentParser:
-    """The parser of ``skinid <command>`` for ``prog`` ending in infer, noise, check, measurement or study."""
-    parser = CommandParser(prog=prog, description=__doc__.splitlines()[0])
-    command = next(name for name in PARSERS if prog.endswith(name))
-    PARSERS[command](parser)
-    return parser
-
-
-def _infer_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid infer``: the posterior of one material or of measurements."""
-    parser.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-    src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", type=Path, help="dataset (.h5): observe one of its materials")
-    src.add_argument("--measurement", type=Path, nargs="+", help="measurement CSV file(s)")
-    parser.add_argument("--material", type=int, help="with --data: material index")
-    parser.add_argument(
-        "--designs",
-        help="with --data: design indices ('2', '0,2,4') or eigen-strains ('--designs=0.05,-0.05') (default: all)",
-    )
-    parser.add_argument(
-        "--frames",
-        help="with --data: frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
-        "(write the '=': the value starts with '-') (default: -1)",
-    )
-    parser.add_argument(
-        "--noise",
-        choices=["halfcauchy", "known"],
-        default="halfcauchy",
-        help="unknown noise per component, or the measurement's sd columns",
-    )
-    add_output(parser, "output directory")
-    _add_sampler(parser)
-
-
-def _noise_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid noise``: a dataset with spatially correlated noise added."""
-    parser.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
-    parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
-    parser.add_argument(
-        "--level", type=float, required=True, help="amplitude as a fraction of the max |strain| of the training data"
-    )
-    parser.add_argument("--seed", type=int, default=0, help="random seed")
-    add_output(parser, "noisy dataset (.h5)")
-
-
-def _check_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid check``: model criticism of measurements against the FE model."""
-    parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
-    parser.add_argument(
-        "--config", help="preset or TOML of the mesh the check runs on (default: the emulator's dataset configuration)"
-    )
-    start = parser.add_mutually_exclusive_group()
-    start.add_argument(
-        "--emulator",
-        type=Path,
-        help="emulator directory: its posterior mode is the start (default: the best of 5 spread points)",
-    )
-    start.add_argument(
-        "--start",
-        type=float,
-        nargs=5,
-        metavar=("MU", "K1", "K2", "KAPPA", "THETA"),
-        help="skin parameters to start the calibration from (MPa, MPa, -, -, deg; "
-        "default: the best of 5 spread points)",
-    )
-    add_output(parser, "report directory (its fe_runs/ keeps finished FE runs for --resume)", resumable=True)
-    parser.add_argument(
-        "--noise-sd",
-        type=float,
-        nargs=3,
-        metavar=("XX", "YY", "XY"),
-        help="measurement noise sd per component [strain] (default: the files' sd columns)",
-    )
-    parser.add_argument(
-        "--noise-length", type=float, default=0.0, help="noise correlation length [mm] (0: independent points)"
-    )
-    parser.add_argument(
-        "--noise-nugget", type=float, default=0.0, help="uncorrelated share of the noise variance in [0, 1]"
-    )
-    parser.add_argument(
-        "--dic-window", type=float, default=1.0, help="the DIC strain window (virtual strain gauge) side [mm]"
-    )
-    parser.add_argument(
-        "--spacing", type=float, default=1.0, help="use one measured point per square of this side [mm]"
-    )
-    parser.add_argument(
-        "--no-discretisation",
-        action="store_true",
-        help="skip the refined-mesh estimate of the check's discretisation error",
-    )
-    parser.add_argument(
-        "--refine",
-        choices=["auto", "uniform", "edge", "quadratic", "converged"],
-        default="auto",
-        help="the estimate's better mesh: every size halved, or only the membrane-edge "
-        "cells (for fine or quadratic meshes), layers doubled in both; or a quadratic reference mesh "
-        "for a linear mesh (Q2, 1 mm edge cells, 0.32 of its error; converged: 0.5 mm, dearer, 0.14). "
-        "auto: edge for a quadratic mesh or one refined at the membrane edge, converged for a linear "
-        "mesh with edge cells under 1 mm (paper), else uniform",
-    )
-    parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
-    parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
-    parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
-    parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
-    parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
-    parser.add_argument("--quiet", action="store_true", help="no progress lines (phases, calibration steps) on stderr")
-
-
-def _measurement_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid measurement import|show``: DIC exports."""
-    sub = parser.add_subparsers(dest="action", required=True)
-    p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
-    p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
-    _add_dic_import(p)
-    p.add_argument(
-        "--alpha",
-        type=float,
-        nargs=2,
-        required=True,
-        metavar=("A11", "A22"),
-        help="the membrane design (alpha11, alpha22)",
-    )
-    p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
-    p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
-    add_output(p, "measurement CSV to write")
-    p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
-    p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
-    _add_dic_import(p)
-    p.add_argument(
-        "--alpha",
-        type=float,
-        nargs=2,
-        metavar=("A11", "A22"),
-        help="the membrane design: report the plausibility check on the figure",
-    )
-    p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
-    add_output(p, "figure (.png)")
-
-
-def _study_command(sub, name: str, help: str, data: str, emulator: bool = True) -> argparse.ArgumentParser:
-    """One ``skinid study`` command with its inputs: the emulator (when it takes one) and a dataset."""
-    p = sub.add_parser(name, help=help)
-    if emulator:
-        p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
-    p.add_argument("--data", type=Path, required=True, help=data)
-    return p
-
-
-def _study_outputs(
-    p: argparse.ArgumentParser, materials: str = "subset of materials (default: the test split)"
-) -> None:
-    """The options every study ends with: its materials, its (resumable) directory, the sampler."""
-    p.add_argument("--materials", help=materials)
-    add_output(p, "study directory", resumable=True)
-    _add_sampler(p)
-
-
-def _study_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid study test-set|setups|noise|coverage``: many posteriors.
-
-    Declarative, longer than a screen: one block of options per study.
-    """
-    sub = parser.add_subparsers(dest="study", required=True)
-    p = _study_command(sub, "test-set", "posteriors of every test material for one setup", "dataset (.h5)")
-    p.add_argument(
-        "--designs",
-        required=True,
-        help="design indices ('2', '7,6,13') or eigen-strain pairs ('--designs=0.05,-0.05,-0.05,0.05')",
-    )
-    p.add_argument(
-        "--frames",
-        default="-1",
-        help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 (write the '=': the value starts with '-')",
-    )
-    _study_outputs(p)
-    p = _study_command(sub, "setups", "single vs multi-frame vs multi-membrane (the paper's Fig. 8)", "dataset (.h5)")
-    add_renamed_option(
-        p,
-        "--designs",
-        old="--design",
-        required=True,
-        help="the single design: index ('7') or eigen-strains ('--designs=0.05,-0.05')",
-    )
-    p.add_argument("--n", type=int, default=3, help="frames / membranes in the multi setups")
-    p.add_argument(
-        "--others",
-        help="the multi-membrane setup's other designs, e.g. '0,13' or '-0.05,0.05,0.05,0.05' "
-        "(default: the n - 1 designs farthest apart in alpha)",
-    )
-    _study_outputs(p)
-    p = _study_command(
-        sub,
-        "coverage",
-        "coverage of the 50 %% / 95 %% intervals and truth ranks over many held-out cases (inference.coverage)",
-        "dataset (.h5) of test materials (its test split), on the emulator's mesh",
-    )
-    p.add_argument(
-        "--setup",
-        choices=["single", "frames", "membranes"],
-        default="single",
-        help="the last frame of one design, its last --n frames, or --n designs",
-    )
-    p.add_argument("--n", type=int, default=3, help="frames / membranes of the multi setups")
-    p.add_argument(
-        "--noise-sd",
-        type=float,
-        default=0.0,
-        help="independent noise sd added and stated [strain] (0: noise-free, unknown noise)",
-    )
-    p.add_argument("--noise-seeds", type=int, default=1, help="noise draws per material and design")
-    p.add_argument(
-        "--starts",
-        type=int,
-        help="starting designs per material, rotating with the material (default: all; 1: independent cases)",
-    )
-    _study_outputs(p)
-    p = _study_command(
-        sub,
-        "noise",
-        "the paper's 9 noise cases: PCA, GP R², test-set posteriors",
-        "clean dataset (.h5)",
-        emulator=False,
-    )
-    add_renamed_option(
-        p,
-        "--designs",
-        old="--design",
-        required=True,
-        help="the design observed (last frame): index ('7') or eigen-strains ('--designs=0.05,-0.05')",
-    )
-    p.add_argument("--lengths", type=float, nargs="+", default=[0.1, 1.0, 5.0], help="noise correlation lengths [mm]")
-    p.add_argument(
-        "--levels",
-        type=float,
-        nargs="+",
-        default=[0.01, 0.05, 0.10],
-        help="noise amplitudes as fractions of the max |strain| of the training data",
-    )
-    p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
-    p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
-    _study_outputs(p, "subset of test materials (default: the test split)")
-
-
-PARSERS = {
-    "infer": _infer_parser,
-    "noise": _noise_parser,
-    "check": _check_parser,
-    "measurement": _measurement_parser,
-    "study": _study_parser,
-}
-
-
-def _add_dic_import(p: argparse.ArgumentParser) -> None:
-    """Options of ``skinid measurement import|show`` that say how to read a DIC export."""
-    from inference.dic_import import FORMATS
-
-    p.add_argument("--format", choices=["auto", *FORMATS], default="auto", help="export format (auto: detect)")
-    p.add_argument("--mm-per-px", type=float, help="image scale [mm/px] (needed for pixel coordinates)")
-    p.add_argument(
-        "--centre",
-        type=float,
-        nargs=2,
-        default=[0.0, 0.0],
-        metavar=("X", "Y"),
-        help="membrane centre in the file's coordinates (file units)",
-    )
-    p.add_argument(
-        "--rotation",
-        type=float,
-        default=0.0,
-        help="angle [deg] from the file's x axis to the membrane's x (alpha11) axis, towards file y",
-    )
-    p.add_argument(
-        "--flip-y",
-        action="store_true",
-        help="the file's y axis points down (image coordinates): mirror it into the membrane frame",
-    )
-    p.add_argument(
-        "--strain",
-        choices=["log", "green", "engineering"],
-        help="strain measure, when the file does not state it (green = Lagrange)",
-    )
-    p.add_argument("--percent", action="store_true", help="strains are in percent")
-    p.add_argument("--config", default="small", help="preset or TOML giving the membrane and block sizes")
-    table = p.add_argument_group("--format table")
-    table.add_argument("--delimiter", help="field separator, e.g. ';', ',', tab (default: detect)")
-    table.add_argument("--decimal", choices=[".", ","], help="decimal mark (default: detect)")
-    table.add_argument("--encoding", help="text encoding (default: BOM, UTF-8, else Latin-1)")
-    table.add_argument(
-        "--columns",
-        nargs=5,
-        metavar=("X", "Y", "EXX", "EYY", "EXY"),
-        help="names of the coordinate and strain (tensor shear) columns",
-    )
-    table.add_argument("--units", choices=["mm", "px"], help="coordinate unit when the header does not say")
-    table.add_argument("--missing", nargs="+", default=[], help="extra missing-value markers, e.g. 'n. def.'")
-    table.add_argument("--skip", type=int, default=0, help="lines before the header to skip")
+from inference.cli_inputs import (
+    check_indices,
+    check_same_mesh,
+    check_sampler,
+    check_strain_scale,
+    design_indices,
+    int_list,
+    one_design,
+)
+from inference.cli_parsers import build_parser
+from skinfem.cli import refuse
 
 
 def settings_of(args, emulator=None):
@@ -482,7 +73,7 @@ def cmd_infer(args) -> None:
         data = StrainDataset.open(args.data)
         check_same_mesh(data, emulator)
         designs = design_indices(args.designs, data.designs, args.data)
-        obs = from_dataset(data, args.material, designs, _ints(args.frames, "--frames"))
+        obs = from_dataset(data, args.material, designs, int_list(args.frames, "--frames"))
     else:
         membrane_half = config_from_toml(emulator.provenance.dataset_config).mesh.membrane_size / 2
         measurements = [read_measurement(p, emulator.provenance.block_half_length) for p in args.measurement]
@@ -505,13 +96,13 @@ def cmd_study(args) -> None:
     if emulator is not None:
         check_same_mesh(data, emulator)
     n_mat, n_des, n_frames, _ = data.shape
-    _check_indices("--materials", _ints(args.materials, "--materials"), n_mat, args.data, negative=False)
+    check_indices("--materials", int_list(args.materials, "--materials"), n_mat, args.data, negative=False)
     if args.study in ("setups", "noise"):
-        args.designs = _one_design(args.designs, data.designs, args.data)
+        args.designs = one_design(args.designs, data.designs, args.data)
     elif args.study == "test-set":
         args.designs = design_indices(args.designs, data.designs, args.data)
-        _check_indices("--designs", args.designs, n_des, args.data)
-        _check_indices("--frames", _ints(args.frames, "--frames"), n_frames, args.data)
+        check_indices("--designs", args.designs, n_des, args.data)
+        check_indices("--frames", int_list(args.frames, "--frames"), n_frames, args.data)
     if args.study == "noise":
         _check_noise_study(args, n_des)
     designs = _setups_designs(args, data) if args.study == "setups" else None
@@ -531,7 +122,7 @@ def cmd_study(args) -> None:
 
 def _check_noise_study(args, n_designs: int) -> None:
     """Refuse the options of ``study noise`` that are out of range."""
-    _check_indices("--designs", [args.designs], n_designs, args.data, negative=False)
+    check_indices("--designs", [args.designs], n_designs, args.data, negative=False)
     for option, values in (("--lengths", args.lengths), ("--levels", args.levels)):
         bad = [v for v in values if not (math.isfinite(v) and v > 0)]
         if bad:
@@ -568,7 +159,7 @@ def _coverage(args, emulator, data) -> None:
         args.n,
         args.noise_sd,
         args.noise_seeds,
-        _ints(args.materials, "--materials"),
+        int_list(args.materials, "--materials"),
         args.starts,
     )
     for name, e in res.parameters.items():
@@ -589,7 +180,7 @@ def _noise_study(args, data) -> None:
         settings_of(args),
         tuple(args.lengths),
         tuple(args.levels),
-        _ints(args.materials, "--materials"),
+        int_list(args.materials, "--materials"),
         {"gp_fraction": args.gp_fraction, "restarts": args.restarts},
     )
     print(f"wrote {args.out}/README.md")
@@ -602,10 +193,10 @@ def _test_set(args, emulator, data) -> None:
         emulator,
         data,
         args.designs,
-        _ints(args.frames, "--frames"),
+        int_list(args.frames, "--frames"),
         settings_of(args, emulator),
         args.out,
-        _ints(args.materials, "--materials"),
+        int_list(args.materials, "--materials"),
     )
     print(json.dumps(res.to_json(), indent=2))
     print(f"wrote {args.out}/study.json and accuracy.png")
@@ -643,7 +234,7 @@ def _setups(args, emulator, data, designs: list[int]) -> None:
             f,
             settings_of(args, emulator),
             args.out / label.replace(" ", "_"),
-            _ints(args.materials, "--materials"),
+            int_list(args.materials, "--materials"),
             label,
         )
         for label, (d, f) in setups.items()

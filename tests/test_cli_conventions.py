@@ -47,7 +47,7 @@ CANONICAL = {
 
 def command_parsers() -> dict[str, argparse.ArgumentParser]:
     """Every (sub)command's parser, by the words that call it (``"study noise"``)."""
-    import inference.__main__ as inference_cli
+    import inference.cli_parsers as inference_cli
     import skinfem.__main__ as skinfem_cli
     import surrogate.__main__ as surrogate_cli
     from skinfem.cli import ROUTES
@@ -167,7 +167,7 @@ def test_one_spelling_per_option():
 
 
 def test_the_old_design_spelling_is_a_hidden_deprecated_alias(capsys):
-    import inference.__main__ as inference_cli
+    import inference.cli_parsers as inference_cli
 
     parser = inference_cli.build_parser("skinid study")
     args = parser.parse_args(["noise", "--data", "d.h5", "--design", "7", "--out", "o"])
@@ -180,7 +180,7 @@ def test_the_old_design_spelling_is_a_hidden_deprecated_alias(capsys):
 
 
 def test_designs_are_named_by_index_or_by_their_eigen_strains():
-    from inference.__main__ import design_indices
+    from inference.cli_inputs import design_indices
 
     designs = np.array([[-0.05, -0.05], [-0.05, 0.033333333333], [0.05, -0.05], [0.05, 0.05]])
     path = Path("d.h5")
@@ -193,7 +193,7 @@ def test_designs_are_named_by_index_or_by_their_eigen_strains():
         design_indices("0.05,0", designs, path)
     with pytest.raises(ValueError, match="come in pairs"):
         design_indices("0.05,-0.05,0.05", designs, path)
-    import inference.__main__ as inference_cli
+    import inference.cli_parsers as inference_cli
 
     parser = inference_cli.build_parser("skinid study")
     args = parser.parse_args(["noise", "--data", "d.h5", "--designs=-0.05,0.05", "--out", "o"])

@@ -33,7 +33,8 @@ import math
 import numpy as np
 import pytest
 
-from inference.__main__ import check_strain_scale, main
+from inference.__main__ import main
+from inference.cli_inputs import check_strain_scale
 from inference.observations import Observation, map_to_cells, read_measurement, write_measurement
 from inference.posterior_file import PosteriorSummary
 from inference.studies import SamplerSettings, posterior_of
