@@ -382,7 +382,8 @@ def cmd_check(args) -> None:
 
 def dic_settings(args):
     """ImportSettings of ``skinid measurement`` from its options and the configuration's sizes."""
-    from inference.dic_import import ImportSettings, TableOptions
+    from inference.dic_import import ImportSettings
+    from inference.dic_readers import TableOptions
     from skinfem.config import load_config
 
     mesh = load_config(args.config).mesh

@@ -290,7 +290,7 @@ PARSERS = {
 
 def _add_dic_import(p: argparse.ArgumentParser) -> None:
     """Options of ``skinid measurement import|show`` that say how to read a DIC export."""
-    from inference.dic_import import FORMATS
+    from inference.dic_readers import FORMATS
 
     p.add_argument("--format", choices=["auto", *FORMATS], default="auto", help="export format (auto: detect)")
     p.add_argument("--mm-per-px", type=float, help="image scale [mm/px] (needed for pixel coordinates)")

@@ -24,11 +24,10 @@ from inference.dic_import import (
     RATIO_RANGE,
     DicField,
     ImportSettings,
-    TableOptions,
     assess_plausibility,
-    detect_format,
     load_dic,
 )
+from inference.dic_readers import TableOptions, detect_format
 from inference.observations import MeasurementError, read_measurement
 
 DATA = Path(__file__).parent / "data" / "dic"
