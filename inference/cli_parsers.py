@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from skinfem.cli import CommandParser, add_output, add_renamed_option
+from skinfem.cli import CommandParser, add_design, add_output, add_renamed_option
 from skinfem.mesh import DEFAULT_MESH_DIR
 
 
@@ -150,27 +150,14 @@ def _measurement_parser(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
     p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
     _add_dic_import(p)
-    p.add_argument(
-        "--alpha",
-        type=float,
-        nargs=2,
-        required=True,
-        metavar=("A11", "A22"),
-        help="the membrane design (alpha11, alpha22)",
-    )
+    add_design(p, "the membrane design (alpha11, alpha22)", required=True)
     p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
     p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
     add_output(p, "measurement CSV to write")
     p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
     p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
     _add_dic_import(p)
-    p.add_argument(
-        "--alpha",
-        type=float,
-        nargs=2,
-        metavar=("A11", "A22"),
-        help="the membrane design: report the plausibility check on the figure",
-    )
+    add_design(p, "the membrane design: report the plausibility check on the figure")
     p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
     add_output(p, "figure (.png)")
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skinfem.cli import CommandParser, add_output, refuse
+from skinfem.cli import CommandParser, add_design, add_output, refuse
 from skinfem.config import PARAM_NAMES, ConfigError, load_config
 from skinfem.mesh import DEFAULT_MESH_DIR
 
@@ -38,14 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     units = {"mu": "MPa", "k1": "MPa", "k2": "-", "kappa": "-", "theta": "deg"}
     for name in PARAM_NAMES:
         p.add_argument(f"--{name}", type=float, required=True, help=f"skin {name} [{units[name]}]")
-    p.add_argument(
-        "--alpha",
-        type=float,
-        nargs=2,
-        required=True,
-        metavar=("A11", "A22"),
-        help="the membrane design: eigen-strains along x and y",
-    )
+    add_design(p, "the membrane design: eigen-strains along x and y", required=True)
     add_output(p, "output dataset (.h5)", replaces="--out and --fields")
     p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf and its .h5; not the --out name)")
 

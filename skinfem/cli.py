@@ -65,6 +65,11 @@ class _DeprecatedSpelling(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
+def add_design(parser: argparse.ArgumentParser, help: str, *, required: bool = False) -> None:
+    """``--alpha A11 A22``: a membrane design's eigen-strains along x and y [-]."""
+    parser.add_argument("--alpha", type=float, nargs=2, required=required, metavar=("A11", "A22"), help=help)
+
+
 def add_output(parser: argparse.ArgumentParser, what: str, *, resumable: bool = False, replaces: str = "--out") -> None:
     """``--out`` (``what`` it is) and ``--force``; also ``--resume`` for an output that keeps
     finished work (see :mod:`skinfem.outputs`)."""
