@@ -197,42 +197,25 @@ def baseline_verdict(report: ReportFile) -> str:
     return verdict_class(report.diagnosis, report.versions[0].metrics.structured)
 
 
+def check_argv(files, folder: Path, add: list[str], args) -> list[str]:
+    """The ``skinid check`` arguments of one check of a case (report in ``folder/report``)."""
+    given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
+    return [
+        "check", "--config", args.config, "--measurement", *map(str, files), "--out", str(folder / "report"),
+        "--noise-length", "2", "--noise-nugget", "0.3", "--increments", "2", "--confirm", "1", "--spacing", "2",
+        "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
+        *(["--add", *add] if add else []),
+    ]  # fmt: skip
+
+
 def check(files, folder: Path, add: list[str], args) -> tuple[ReportFile | None, float]:
     """One ``skinid check`` into ``folder/report`` (its FE runs kept for the next round); returns
     (its report.json on rank 0, else None; seconds)."""
     from inference.__main__ import main as skinid
     from inference.criticism.report_file import read_report
 
-    given = [] if args.start == "spread" else ["--start", *map(str, box_centre(args.config))]
     start = time.perf_counter()
-    code = skinid(
-        [
-            "check",
-            "--config",
-            args.config,
-            "--measurement",
-            *map(str, files),
-            "--out",
-            str(folder / "report"),
-            "--noise-length",
-            "2",
-            "--noise-nugget",
-            "0.3",
-            "--increments",
-            "2",
-            "--confirm",
-            "1",
-            "--spacing",
-            "2",
-            "--mesh-dir",
-            str(args.mesh_dir),
-            "--refine",
-            args.refine,
-            "--resume",
-            *given,
-            *(["--add", *add] if add else []),
-        ]
-    )
+    code = skinid(check_argv(files, folder, add, args))
     seconds = time.perf_counter() - start
     if MPI.COMM_WORLD.rank or code:
         return None, seconds

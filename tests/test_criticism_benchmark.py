@@ -98,3 +98,24 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
         args.results.write_text(malformed)
         with pytest.raises(SystemExit, match="not a results file"):
             bench.recorded_rows(args)
+
+
+def test_a_benchmark_check_is_a_valid_skinid_check_command_started_at_the_box_centre(tmp_path):
+    """``check_argv`` is what the benchmark runs and what ``criticism_basin.py`` rebuilds from."""
+    import argparse
+
+    from inference.cli_parsers import build_parser
+    from skinfem.config import load_config
+
+    bench = load_benchmark()
+    args = argparse.Namespace(config="check", refine="edge", start="centre", mesh_dir=tmp_path / "meshes")
+    files = [tmp_path / "m_0.csv", tmp_path / "m_1.csv"]
+    argv = bench.check_argv(files, tmp_path / "none_0", ["pre_stretch"], args)
+    assert argv[0] == "check"
+    parsed = build_parser("skinid check").parse_args(argv[1:])
+    assert parsed.measurement == files and Path(parsed.out) == tmp_path / "none_0" / "report"
+    assert parsed.start == load_config("check").sweep.box.mean(axis=1).tolist()
+    assert (parsed.refine, parsed.spacing, parsed.increments, parsed.add) == ("edge", 2.0, 2, ["pre_stretch"])
+    assert (parsed.noise_length, parsed.noise_nugget, parsed.resume) == (2.0, 0.3, True)
+    spread = argparse.Namespace(**{**vars(args), "start": "spread"})
+    assert build_parser("skinid check").parse_args(bench.check_argv(files, tmp_path, [], spread)[1:]).start is None
