@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 
 STRONG_EVIDENCE = 6.0  # Delta BIC above which a candidate is reported (Kass & Raftery: strong)
 MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess residual
+# a candidate whose signature the skin parameters absorb beyond this share at the calibrated point
+# has a blind linearised test (a large effect may still differ from what they absorb): it is fitted
+CONFOUNDED = 0.8
 MAX_MESH_FACTOR = 10.0  # the largest multiple of the carried model error the other explanation tries
 NOISE_STRUCTURE_Z = 3.0  # |Moran z| below which a residual has the stated noise's spatial structure
 
@@ -291,7 +294,11 @@ def diagnose(
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
     (only those with strong evidence) are calibrated for real, and their fitted Delta BIC and
-    share of the excess residual replace the linearised ones. ``carried_sigma``: RMS of the
+    share of the excess residual replace the linearised ones; so are (``confirm`` > 0) the
+    candidates whose linearised test is blind, more than ``CONFOUNDED`` of their signature
+    absorbed by the skin parameters: a skin that compensates a stiffer muscle at the
+    calibrated point leaves it no local signature, yet the effect, fitted, can explain more
+    than the candidate the linearisation ranks first. ``carried_sigma``: RMS of the
     model error ``data`` carries (the mesh's, in noise sd; see :func:`verdict`). ``added``:
     effects ``cal`` already includes (a later round), kept in the verdict's ``--add`` advice.
     """
@@ -302,7 +309,9 @@ def diagnose(
     fits: dict[str, Calibration] = {}
     if metrics.structured:
         excess, n = excess_chi2(cal, data), metrics.n_data
-        for s in [s for s in scores if s.delta_bic > STRONG_EVIDENCE][:confirm]:
+        strong = [s for s in scores if s.delta_bic > STRONG_EVIDENCE][:confirm]
+        blind = [s for s in scores if confirm and s.confounding > CONFOUNDED and s not in strong]
+        for s in strong + blind:
             fit = fits[s.effect] = extend(forward, cal, data, s.effect, **fit_kwargs)
             drop = cal.chi2 - fit.chi2
             s.delta_bic = drop - s.dof * math.log(n)
@@ -373,9 +382,18 @@ def verdict(
     text += f" Most likely missing: {best.summary()}."
     effect = get_effect(best.effect)
     text += " Estimated " + effect.describe({q.split(".", 1)[1]: v for q, v in best.estimate.items()})
-    if best.confounding > 0.8:
+    if best.confounding > CONFOUNDED:
         text += (
             " It is strongly confounded with the skin parameters: more load frames or membrane designs "
             "would separate them."
         )
+    rivals = [s for s in scores if s.explains and s is not best]
+    if rivals:
+        text += " Explaining it too: " + "; ".join(rival_summary(s) for s in rivals) + " (compare with --add)."
     return text + f" Add it with --add {' '.join([*added, best.effect])}."
+
+
+def rival_summary(score: CandidateScore) -> str:
+    """A candidate that explains the residual as well, short: name, Delta BIC, share of the excess."""
+    how = "fitted" if score.fitted else "linearised"
+    return f"{score.effect} ({how} Delta BIC = {score.delta_bic:+.1f}, {score.share_explained:.0%} of the excess)"
