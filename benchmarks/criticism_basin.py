@@ -52,10 +52,9 @@ def basin(case: str, case_folder: Path, args, comm) -> dict:
     from inference.__main__ import check_inputs
     from inference.cli_parsers import build_parser
     from inference.criticism.calibration import calibrate
-    from inference.criticism.check import CheckTimings, compare
+    from inference.criticism.check import CheckTimings, compare, refined_forward, starting_point
     from inference.criticism.data import Data
     from inference.criticism.diagnosis import check_noise_statement, extend
-    from inference.criticism.discretisation import refined_config
     from inference.forward import FEForward
     from skinfem.effects import get_effect
 
@@ -65,10 +64,8 @@ def basin(case: str, case_folder: Path, args, comm) -> dict:
     cache = case_folder / "report" / "fe_runs"
     forward = FEForward(config, measurements, bounds, args.mesh_dir, settings.increments, comm, cache, settings.gauge)
     data = Data.from_points(measurements, noise)
-    start = forward.null.copy()
-    start[:5] = settings.start
-    fine = refined_config(config, settings.refinement)
-    refined = lambda: FEForward(fine, measurements, bounds, args.mesh_dir, None, comm, cache, settings.gauge)  # noqa: E731
+    start, _ = starting_point(forward, data, settings, None, measurements)
+    refined = refined_forward(forward, measurements, bounds, (args.mesh_dir, comm, cache), settings)
     model, data, baseline, _ = compare(forward, refined, data, start, settings, CheckTimings())
     half = config.mesh.membrane_size / 2
     baseline, data, statement = check_noise_statement(model, baseline, data, (half, 2 * config.mesh.h_membrane))

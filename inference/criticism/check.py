@@ -228,7 +228,7 @@ def run_check(
 
     t0, runs0 = time.perf_counter(), forward.runs
 
-    refined = _refined_forward(forward, measurements, skin_bounds, (mesh_dir, comm, cache_dir), settings)
+    refined = refined_forward(forward, measurements, skin_bounds, (mesh_dir, comm, cache_dir), settings)
     model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
     baseline, data, noise_statement = check_noise_statement(
         model, baseline, data, (half, band), settings.max_iterations // 2
@@ -281,7 +281,7 @@ def run_check(
     )
 
 
-def _refined_forward(
+def refined_forward(
     forward: FEForward,
     measurements: list[Measurement],
     skin_bounds: np.ndarray,
