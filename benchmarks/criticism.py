@@ -295,6 +295,7 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
             for r in reports
         ),
         "fe_runs_continued": first.timings.fe_runs_continued,
+        "fe_runs_read_from_cache": sum(r.timings.fe_runs_read_from_cache for r in reports),  # a resumed check
         "refined_seconds": first.timings.refined_s,
         "estimates_baseline": estimates_json(baseline),
         "estimates_with_true_effect": None if final is None else estimates_json(final),

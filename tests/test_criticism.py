@@ -582,7 +582,7 @@ def test_a_candidate_the_skin_compensates_is_fitted_and_named_before_a_partial_o
     assert "muscle_stiffness.log_factor" in d.fits["muscle_stiffness"].free_names
     assert d.fits["muscle_stiffness"].x[world.muscle] == pytest.approx(2.0, rel=0.05)
     assert scores["compressibility"].explains and 0.5 < scores["compressibility"].share_explained < 0.8
-    assert "Explaining it too: compressibility (fitted Delta BIC" in d.text
+    assert "These explain it too, to compare with --add: compressibility (fitted Delta BIC" in d.text
     blind = score_candidates(cal, data, signatures(world, cal, data, ["muscle_stiffness"]))[0]
     assert blind.confounding > 0.8 and blind.delta_bic < scores["compressibility"].delta_bic
 

@@ -356,7 +356,7 @@ def verdict(
     worst = regions[0]
     text = (
         f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
-        f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); it is largest at the "
+        f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); the worst region: "
         f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1), "
         f"{hotspot.summary()}."
     )
@@ -389,7 +389,7 @@ def verdict(
         )
     rivals = [s for s in scores if s.explains and s is not best]
     if rivals:
-        text += " Explaining it too: " + "; ".join(rival_summary(s) for s in rivals) + " (compare with --add)."
+        text += " These explain it too, to compare with --add: " + "; ".join(rival_summary(s) for s in rivals) + "."
     return text + f" Add it with --add {' '.join([*added, best.effect])}."
 
 
