@@ -149,7 +149,17 @@ def prestretch_log_strain(lambda1: float, lambda2: float, direction_deg: float) 
     return {"eps_xx": e1 * c * c + e2 * s * s, "eps_yy": e1 * s * s + e2 * c * c, "eps_xy": (e1 - e2) * c * s}
 
 
-class ScaledTerm(Effect):
+class LogFactor(Effect):
+    """An effect with one parameter, log_factor: the log of the factor on an assumed quantity."""
+
+    quantity: ClassVar[str]  # what the factor multiplies, for reports
+
+    @classmethod
+    def describe(cls, values: dict[str, float]) -> str:
+        return f"{cls.quantity} {math.exp(values['log_factor']):.2f} times the assumed one."
+
+
+class ScaledTerm(LogFactor):
     """An effect that multiplies one scalar of :class:`ModelTerms` by exp(log_factor)."""
 
     term: ClassVar[str]
@@ -163,15 +173,17 @@ class MuscleStiffness(ScaledTerm):
     description = "muscle shear modulus differs from the assumed one: mu_m = mu_m,config exp(p)"
     parameters = (EffectParameter("log_factor", "-", -1.6, 1.6, 0.0, "ln(mu_m / mu_m,config)"),)
     term = "muscle_mu"
+    quantity = "muscle shear modulus"
 
 
-class SkinThickness(Effect):
+class SkinThickness(LogFactor):
     name = "skin_thickness"
     description = (
         "skin thickness differs from the nominal 0.6 mm: h = h_config exp(p) (the skin layer of "
         "the mesh is mapped affinely through its thickness)"
     )
     parameters = (EffectParameter("log_factor", "-", math.log(0.5), math.log(2.0), 0.0, "ln(h / h_config)"),)
+    quantity = "skin thickness"
 
     def apply(self, terms: ModelTerms, p: dict[str, object]) -> None:
         s = ufl.exp(p["log_factor"])
@@ -183,6 +195,7 @@ class Compressibility(ScaledTerm):
     description = "skin compressibility differs from K/mu = 20: K/mu = bulk_ratio exp(p)"
     parameters = (EffectParameter("log_factor", "-", -1.6, 3.0, 0.0, "ln(K/mu / bulk_ratio)"),)
     term = "skin_bulk_ratio"
+    quantity = "skin bulk-to-shear modulus ratio K/mu"
 
 
 class Bonding(Effect):

@@ -60,6 +60,15 @@ def test_registry_declares_parameters_with_null_inside_the_prior():
             assert q.low <= q.null <= q.high and q.low < q.high and q.unit
 
 
+def test_reports_state_a_log_factor_as_the_factor_on_the_assumed_quantity():
+    for name, quantity in [("muscle_stiffness", "muscle shear modulus"), ("skin_thickness", "skin thickness")]:
+        assert EFFECTS[name].describe({"log_factor": math.log(2.0)}) == f"{quantity} 2.00 times the assumed one."
+    assert EFFECTS["compressibility"].describe({"log_factor": -0.544}).endswith(" 0.58 times the assumed one.")
+    assert EFFECTS["pre_stretch"].describe(prestretch_log_strain(1.08, 1.02, 30.0)) == (
+        "pre-stretch 1.080 x 1.020, major axis at 30 deg."
+    )
+
+
 def test_prestretch_parametrisation_round_trips():
     eps = prestretch_log_strain(1.08, 1.02, 30.0)
     l1, l2, angle = principal_prestretch(eps["eps_xx"], eps["eps_yy"], eps["eps_xy"])

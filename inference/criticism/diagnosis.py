@@ -362,24 +362,36 @@ def verdict(
     )
     best = next((s for s in scores if s.explains), None)
     if best is None:
-        lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
-        compared = bool(scores and larger and STRONG_EVIDENCE < scores[0].delta_bic <= larger.delta_bic)
-        if compared:
-            lead = lead[:-1] + (
-                f": the carried model error at {larger.factor:.1f} times its estimate explains the residual "
-                f"as well (Delta BIC = +{larger.delta_bic:.1f})."
-            )
-        if carried_sigma > MESH_RESOLVED_SIGMA:
-            factor = ""
-            if larger and not compared:  # else the lead has said it
-                factor = f" (it would take the mesh's error at {larger.factor:.1f} times its estimate)"
-            return (
-                text + " No candidate explains the residual." + lead + " The check's own discretisation error "
-                f"exceeds the noise, so this structure may be the mesh's{factor}: rerun on a finer mesh before "
-                "concluding that something outside the registry is missing."
-            )
-        return text + " No candidate explains the residual." + lead + " Something outside the registry is missing."
-    text += f" Most likely missing: {best.summary()}."
+        return text + " No candidate explains the residual." + unexplained(scores, carried_sigma, larger)
+    return text + named(best, scores, added)
+
+
+def unexplained(scores: list[CandidateScore], carried_sigma: float, larger: LargerModelError | None) -> str:
+    """The verdict's end when no candidate explains a structured residual: the best candidate and
+    what it lacks, then whether the mesh's own error may be the cause or something outside the
+    registry is missing."""
+    lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
+    compared = bool(scores and larger and STRONG_EVIDENCE < scores[0].delta_bic <= larger.delta_bic)
+    if compared:
+        lead = lead[:-1] + (
+            f": the carried model error at {larger.factor:.1f} times its estimate explains the residual "
+            f"as well (Delta BIC = +{larger.delta_bic:.1f})."
+        )
+    if carried_sigma <= MESH_RESOLVED_SIGMA:
+        return lead + " Something outside the registry is missing."
+    factor = ""
+    if larger and not compared:  # else the lead has said it
+        factor = f" (it would take the mesh's error at {larger.factor:.1f} times its estimate)"
+    return (
+        lead + " The check's own discretisation error exceeds the noise, so this structure may be the "
+        f"mesh's{factor}: rerun on a finer mesh before concluding that something outside the registry is missing."
+    )
+
+
+def named(best: CandidateScore, scores: list[CandidateScore], added: Sequence[str]) -> str:
+    """The verdict's end naming ``best``: its estimate, its confounding with the skin parameters,
+    the other candidates that explain the residual too, and the ``--add`` advice."""
+    text = f" Most likely missing: {best.summary()}."
     effect = get_effect(best.effect)
     text += " Estimated " + effect.describe({q.split(".", 1)[1]: v for q, v in best.estimate.items()})
     if best.confounding > CONFOUNDED:
