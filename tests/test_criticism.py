@@ -880,6 +880,21 @@ def assert_report_reads_back(result, out):
         read_report(out / "older.json")
 
 
+def test_estimates_looser_than_the_prior_are_reported_as_not_determined():
+    """A Laplace sd above a uniform prior's (width / sqrt 12) or not finite: the fit is flat
+    along that parameter; a parameter the forward model does not bound is not judged."""
+    from inference.criticism.calibration import Calibration
+    from inference.criticism.report import undetermined
+
+    names, bounds = ["mu", "k1", "theta"], np.array([[0.0, 1.0], [0.0, 12.0], [0.0, 90.0]])
+    sd = [0.28, 3.5, np.nan, 9.0]  # mu just under 1 / sqrt(12) = 0.289, k1 just over 12 / sqrt(12) = 3.46
+    cal = Calibration(
+        [*names, "discretisation.amplitude"], np.zeros(4), [0, 1, 2, 3], np.diag(np.square(sd)),
+        np.zeros(0), np.zeros(0), np.zeros((0, 4)), fe_runs=0, seconds=0.0,
+    )  # fmt: skip
+    assert undetermined(cal, names, bounds) == ["k1", "theta"]
+
+
 class CubicForward(LinearForward):
     """fields = A (x + x^3 / 4): nonlinear, so that Levenberg-Marquardt takes several steps."""
 

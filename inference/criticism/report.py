@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from inference.criticism.calibration import Calibration
 from inference.criticism.check import CheckResult
 from inference.criticism.diagnosis import CandidateScore
 from inference.criticism.report_figures import candidates_plot, error_falls_plot, regions_map, residual_maps
@@ -200,10 +201,21 @@ def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
             f"{m.ppc_p:.3f} | {m.moran_z:.1f} | {base.bic - m.bic:+.1f} | "
             f"{'yes' if not m.structured else 'no'} |"
         )
-    lines += [
-        "",
-        "![error falls](error_falls.png)",
-        "",
+    lines += ["", "![error falls](error_falls.png)", "", *estimate_lines(result)]
+    final = result.versions[-1].calibration
+    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:]) if name in EFFECTS]
+    for name in added:
+        values = {q.split(".", 1)[1]: float(final.x[final.names.index(q)]) for q in get_effect(name).qualified_names()}
+        lines += ["", f"{name} in the final version: {get_effect(name).describe(values)}"]
+    if final_maps:
+        lines += ["", f"Final version ({final.label}), residual maps:", ""]
+        lines += [f"![final residual, observation {i}]({p.name})" for i, p in enumerate(final_maps)]
+    return lines
+
+
+def estimate_lines(result: CheckResult) -> list[str]:
+    """The versions' parameter estimates (± Laplace sd), then those the data do not determine."""
+    lines = [
         "Parameter estimates (± 1 sd, Laplace):",
         "",
         "| parameter | " + " | ".join(v.calibration.label for v in result.versions) + " |",
@@ -216,15 +228,27 @@ def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
             e = v.calibration.estimates().get(name)
             cells.append(f"{_fmt(e.value)} ± {_fmt(e.sd)}" if e else "—")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    final = result.versions[-1].calibration
-    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:]) if name in EFFECTS]
-    for name in added:
-        values = {q.split(".", 1)[1]: float(final.x[final.names.index(q)]) for q in get_effect(name).qualified_names()}
-        lines += ["", f"{name} in the final version: {get_effect(name).describe(values)}"]
-    if final_maps:
-        lines += ["", f"Final version ({final.label}), residual maps:", ""]
-        lines += [f"![final residual, observation {i}]({p.name})" for i, p in enumerate(final_maps)]
+    loose = [
+        f"{', '.join(names)} ({v.calibration.label})"
+        for v in result.versions
+        if (names := undetermined(v.calibration, result.names, result.bounds))
+    ]
+    if loose:
+        lines += [
+            "",
+            "Not determined by these data (Laplace sd above the prior's, the box width / sqrt(12): the fit "
+            "is flat along them, and the value shown is one point of a valley of equal fit): "
+            + "; ".join(loose) + ".",
+        ]  # fmt: skip
     return lines
+
+
+def undetermined(cal: Calibration, names: list[str], bounds: np.ndarray) -> list[str]:
+    """Free parameters of ``cal`` whose Laplace sd is not finite or exceeds that of a uniform prior
+    on ``bounds`` (p, 2; rows as ``names``, the forward model's), width / sqrt(12). Parameters
+    outside ``names`` (the discretisation amplitude) are not judged."""
+    prior_sd = dict(zip(names, np.ptp(bounds, axis=1) / np.sqrt(12)))
+    return [n for n, e in cal.estimates().items() if n in prior_sd and not e.sd <= prior_sd[n]]
 
 
 def cost_lines(result: CheckResult) -> list[str]:
