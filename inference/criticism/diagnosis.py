@@ -358,7 +358,7 @@ def verdict(
         f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
         f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); the worst region: "
         f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1), "
-        f"{hotspot.summary()}."
+        f"peaking {hotspot.summary()}."
     )
     best = next((s for s in scores if s.explains), None)
     if best is None:

@@ -72,7 +72,7 @@ class Hotspot:
 
     def summary(self) -> str:
         return (
-            f"peaking within {self.radius:.1f} mm of (x, y) = ({self.x:.1f}, {self.y:.1f}) mm "
+            f"within {self.radius:.1f} mm of (x, y) = ({self.x:.1f}, {self.y:.1f}) mm "
             f"({self.rms_sigma:.1f} sigma RMS over its {self.points} nearest points)"
         )
 

@@ -131,7 +131,7 @@ def region_lines(result: CheckResult) -> list[str]:
         f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(result.diagnosis.regions)
     ]
     spot = result.diagnosis.hotspot
-    return lines + ["", f"The largest residual is {spot.summary()}.", "", "![regions](regions.png)"]
+    return lines + ["", f"The residual peaks {spot.summary()}.", "", "![regions](regions.png)"]
 
 
 def candidate_lines(result: CheckResult) -> list[str]:
