@@ -215,7 +215,7 @@ class FEForward(ForwardModel):
         setup = f"{config.to_toml()}\n{self.names}\n{self.designs}\n{self.picks}\n{gauge}\n{points.hex()}"
         self._setup_hash = hashlib.sha256(setup.encode()).hexdigest()
         self.reused = 0  # simulations read from cache_dir instead of run
-        self.continuation = Continuation(scale=np.ptp(self.bounds, axis=1)) if continuation else None
+        self.continuation = Continuation() if continuation else None
         self.continued = 0  # simulations started from a nearby point's states instead of ramped
         self.transferred = False  # states come from another mesh (continue_from): solved by pseudo-time
         self.transferred_runs: list[TransferredRun] = []  # this rank's, in the order run

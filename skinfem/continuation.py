@@ -8,10 +8,9 @@ Newton steps away from the previous point's, moved along its sensitivities:
     u(x) ~= u(x0) + sum_i du/dx_i (x - x0)_i,
 
 a first-order predictor (zeroth order for parameters without a stored sensitivity).
-:class:`Continuation` keeps, per membrane design, the last few converged states (the unloaded
+:class:`Continuation` keeps, per membrane design, the last converged states (the unloaded
 reference of a pre-stressed model and every observed frame) with the sensitivities computed
-there, and predicts the starting states of :meth:`skinfem.model.SkinModel.solve_frames` from
-the kept states nearest to the new point.
+there, and predicts the starting states of :meth:`skinfem.model.SkinModel.solve_frames`.
 Units: dof arrays in mm, sensitivities in mm per unit of x (theta per degree).
 """
 
@@ -41,57 +40,38 @@ class ConvergedStates:
 
 
 class Continuation:
-    """The last few converged states per design, and predictions from the nearest (see module doc).
+    """The last converged states per design, and predictions from them (see module doc)."""
 
-    Args:
-        scale: (p,) parameter scales (e.g. the prior box's widths) for the distance between
-            parameter vectors; None: unscaled.
-        keep: states kept per design. A check alternates fits of several candidate effects
-            from one baseline: the nearest kept states, not the last, start the next one.
-    """
-
-    def __init__(self, scale: np.ndarray | None = None, keep: int = 4):
-        self._kept: dict[Hashable, list[ConvergedStates]] = {}
-        self.scale = None if scale is None else np.asarray(scale, float)
-        self.keep = keep
+    def __init__(self):
+        self._last: dict[Hashable, ConvergedStates] = {}
 
     def record(self, design: Hashable, states: ConvergedStates) -> None:
         """Keep ``states`` for ``design``; without sensitivities of their own they inherit
         the previous states' (same frames), a first-order predictor from a nearby point."""
-        kept = self._kept.setdefault(design, [])
-        if not states.sensitivities and kept and kept[-1].frames.keys() == states.frames.keys():
-            states.sensitivities = kept[-1].sensitivities
-        kept.append(states)
-        del kept[: -self.keep]
+        previous = self._last.get(design)
+        if not states.sensitivities and previous is not None and previous.frames.keys() == states.frames.keys():
+            states.sensitivities = previous.sensitivities
+        self._last[design] = states
 
     def designs(self) -> list[Hashable]:
         """Designs with converged states."""
-        return list(self._kept)
+        return list(self._last)
 
     def states(self, design: Hashable) -> ConvergedStates:
-        """The last converged states of ``design``."""
-        return self._kept[design][-1]
-
-    def nearest(self, design: Hashable, x: np.ndarray, frames: Sequence[float]) -> ConvergedStates | None:
-        """The kept states of ``design`` holding ``frames`` closest to ``x`` (the latest of equally
-        close ones), or None."""
-        usable = [s for s in reversed(self._kept.get(design, [])) if set(frames) <= s.frames.keys()]
-        scale = 1.0 if self.scale is None else self.scale
-        return min(usable, key=lambda s: float(np.linalg.norm((x - s.x) / scale)), default=None)
+        return self._last[design]
 
     def predict(
         self, design: Hashable, x: np.ndarray, frames: Sequence[float]
     ) -> tuple[np.ndarray | None, list[tuple[float, np.ndarray]]] | None:
-        """(reference guess, [(t, guess)] for ``frames``) at parameters x from the nearest kept
-        states, or None if this design has no converged states for these frames yet."""
-        x = np.asarray(x, float)
-        near = self.nearest(design, x, frames)
-        if near is None:
+        """(reference guess, [(t, guess)] for ``frames``) at parameters x, or None if this
+        design has no converged states for these frames yet."""
+        last = self._last.get(design)
+        if last is None or not set(frames) <= last.frames.keys():
             return None
-        step = x - near.x
-        reference = None if near.reference is None else near.reference.copy()
-        guesses = {t: near.frames[t].copy() for t in frames}
-        for i, (d_reference, d_frames) in near.sensitivities.items():
+        step = np.asarray(x, float) - last.x
+        reference = None if last.reference is None else last.reference.copy()
+        guesses = {t: last.frames[t].copy() for t in frames}
+        for i, (d_reference, d_frames) in last.sensitivities.items():
             if step[i] == 0.0:
                 continue
             if reference is not None and d_reference is not None:

@@ -43,20 +43,6 @@ def test_states_without_sensitivities_inherit_the_previous_ones():
     np.testing.assert_allclose(guess, 7.0)
 
 
-def test_the_nearest_kept_states_start_a_point_not_the_last():
-    """A check fits one candidate after another from one baseline: the next fit's first point
-    is next to the baseline's states, not to the last fit's end. Distances are in units of the
-    scale (a wide range counts less); only the last ``keep`` states are kept."""
-    continuation = Continuation(scale=np.array([1.0, 100.0]), keep=2)
-    for x, value in [((5.0, 0.0), 1.0), ((0.0, 0.0), 2.0), ((0.0, 300.0), 3.0)]:
-        continuation.record(0, ConvergedStates(np.array(x), None, {1.0: np.full(3, value)}))
-    _, [(_, guess)] = continuation.predict(0, np.array([0.2, 0.0]), [1.0])
-    np.testing.assert_allclose(guess, 2.0)  # (0, 0), not the last (0, 300): 0.2 against 3.0 apart
-    _, [(_, guess)] = continuation.predict(0, np.array([4.0, 0.0]), [1.0])
-    np.testing.assert_allclose(guess, 2.0)  # (5, 0) was dropped
-    assert continuation.states(0).x.tolist() == [0.0, 300.0]
-
-
 def two_design_forward(config, mesh_dir, continuation):
     """The serial FE forward model (all effects) at two designs and two load fractions."""
     from inference.forward import FEForward, PointSet
