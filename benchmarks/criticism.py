@@ -309,7 +309,7 @@ BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitt
 
 
 def report_summary(folder: Path) -> dict:
-    """From the case's (last) report.json: seconds and FE runs of each phase, the baseline's
+    """From the case's (last) report.json: seconds, FE runs and solver work of each phase, the baseline's
     chi^2/dof and posterior-predictive p, its best candidate and the competing larger model error."""
     from inference.criticism.report_file import read_report
 
@@ -319,6 +319,7 @@ def report_summary(folder: Path) -> dict:
     larger = report.diagnosis.larger_model_error
     return {
         "phases": {f"{p}{unit}": timings[f"{p}{unit}"] for p in PHASES for unit in ("_s", "_fe_runs")},
+        "work": timings["work"],  # Newton steps, factorisations, triangular solves per phase (None: not counted)
         "chi2_per_dof": report.versions[0].metrics.chi2_per_dof,
         "ppc_p": report.versions[0].metrics.ppc_p,
         "best_candidate": best and {key: getattr(best, key) for key in BEST_CANDIDATE},

@@ -13,6 +13,7 @@ from mpi4py import MPI
 
 from inference.criticism import Data, NoiseModel, calibrate, diagnose, rank_regions, residual_metrics
 from inference.criticism.calibration import CHI2_TOLERANCE
+from inference.criticism.check import PhaseWork
 from inference.criticism.diagnosis import score_candidates, signatures
 from inference.criticism.report import write_report
 from inference.criticism.report_file import (
@@ -26,6 +27,7 @@ from inference.criticism.report_file import (
 from inference.forward import ForwardModel, TaylorForward, parameter_space
 from skinfem.effects import EFFECTS, prestretch_log_strain
 from skinfem.params import SkinParams
+from skinfem.solver_work import SolverWork
 from tests.cli_helpers import MPIRUN, skinid
 
 TRUTH = SkinParams(0.0012, 0.017, 11.0, 0.285, 30.0)
@@ -396,6 +398,10 @@ def test_check_finds_and_adds_a_hidden_prestretch(small_config, small_emulator, 
     assert t.fe_runs_read_from_cache == (
         first.compare_fe_runs + first.diagnose_fe_runs + first.add_fe_runs + first.next_round_fe_runs
     )
+    # the solver work of each phase: none when every run is read back
+    assert first.work.compare.newton_steps >= first.compare_fe_runs > 0
+    assert first.work.diagnose.triangular_solves >= first.work.diagnose.newton_steps > 0
+    assert t.work == PhaseWork()
     for v_again, v in zip(again.versions, report.versions, strict=True):
         assert v_again.metrics == v.metrics and v_again.estimates == v.estimates
     assert again.diagnosis.candidates == report.diagnosis.candidates
@@ -842,6 +848,7 @@ def linear_check(world, data, baseline, added):
             diagnose_fe_runs=9,
             fe_runs_continued=3,
             refined_runs=[{"design": [0.05, -0.05], "residuals": [0.0166, float("nan"), 0.0022]}],
+            work=PhaseWork(compare=SolverWork(31, 4, 250), refined=SolverWork(5, 1, 40), diagnose=SolverWork(9, 2, 70)),
         ),
     )
 

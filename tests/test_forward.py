@@ -9,6 +9,7 @@ from skinfem.fenics import dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy
 from skinfem.model import SkinModel, extrapolate
 from skinfem.params import Design, SkinParams
+from skinfem.solver_work import SolverWork, WorkMeter
 from tests.helpers import at_point, component_bc, solve_energy
 
 PARAMS = SkinParams(mu=1.2e-3, k1=0.017, k2=12.0, kappa=0.28, theta=30.0)
@@ -52,6 +53,19 @@ def test_reused_factorization_gives_the_newton_lu_fields(small_model, small_conf
     assert reused.newton_iterations == plain.newton_iterations
     assert plain_model.factorizations == sum(plain.newton_iterations)
     assert 1 <= factorizations < sum(reused.newton_iterations) / 2
+
+
+def test_the_work_meter_counts_what_the_model_counts(small_model):
+    """PETSc's event log (a check's cost per phase) against the model's own counters: one
+    tangent per Newton iteration, the factorisations the model made, and at least one
+    preconditioned GMRES iteration (a triangular solve) per Newton step; nothing between laps."""
+    meter = WorkMeter(MPI.COMM_SELF)
+    frames = small_model.simulate(PARAMS, Design(0.05, -0.05))
+    work = meter.lap()
+    assert work.newton_steps == sum(frames.newton_iterations) > 0
+    assert work.factorisations == small_model.factorizations >= 1
+    assert work.triangular_solves >= work.newton_steps
+    assert meter.lap() == SolverWork()
 
 
 def test_predictor_is_exact_for_polynomial_load_paths():

@@ -38,6 +38,7 @@ from skinfem.config import Config
 from skinfem.dic import StrainGauge
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.parallel import collective, on_root
+from skinfem.solver_work import SolverWork, WorkMeter, solver_work
 from surrogate.emulator import Emulator
 
 log = logging.getLogger(__name__)
@@ -99,8 +100,20 @@ class Version:
 
 
 @dataclass
+class PhaseWork:
+    """Newton steps, LU factorisations and triangular solves of each phase of a check (all ranks)."""
+
+    setup: SolverWork = SolverWork()
+    compare: SolverWork = SolverWork()  # includes the refined mesh's
+    refined: SolverWork = SolverWork()
+    diagnose: SolverWork = SolverWork()
+    add: SolverWork = SolverWork()
+    next_round: SolverWork = SolverWork()
+
+
+@dataclass
 class CheckTimings:
-    """Wall seconds and FE simulations of each phase of a check."""
+    """Wall seconds, FE simulations and linear-algebra work of each phase of a check."""
 
     setup_s: float = 0.0
     compare_s: float = 0.0  # baseline calibration(s), discretisation estimate, noise statement
@@ -119,6 +132,15 @@ class CheckTimings:
     fe_runs_continued: int = 0  # started from a nearby point's states instead of a load ramp
     refined_fe_runs_continued: int = 0  # started from the check mesh's interpolated fields
     refined_runs: list[dict] = field(default_factory=list)  # forward.TransferredRun of every rank, as dicts
+    work: PhaseWork | None = None  # None in reports written before it was counted
+
+    @classmethod
+    def from_json(cls, d: dict) -> CheckTimings:
+        """From :func:`dataclasses.asdict` of one, as report.json holds it."""
+        work = d.get("work")
+        if work is not None:
+            work = PhaseWork(**{phase: SolverWork(**counts) for phase, counts in work.items()})
+        return cls(**{**d, "work": work})
 
 
 @dataclass
@@ -214,26 +236,26 @@ def run_check(
     """
     if settings.discretisation:  # a refinement that does not apply: before any FE run, said once
         collective(comm, lambda: error_ratio(config, settings.refinement), (ValueError,))
-    timings = CheckTimings()
+    timings, work, meter = CheckTimings(), PhaseWork(), WorkMeter(comm)
     t0 = time.perf_counter()
     forward = FEForward(
         config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir, settings.gauge
     )
     data = Data.from_points(measurements, noise)
     start, start_from = starting_point(forward, data, settings, emulator, measurements)
-    timings.setup_s = time.perf_counter() - t0
+    timings.setup_s, work.setup = time.perf_counter() - t0, meter.lap()
     log.info("calibrating the baseline on %s (start: %s)", describe_mesh(config), start_from)
     half = config.mesh.membrane_size / 2
     band = settings.band or 2 * config.mesh.h_membrane
 
     t0, runs0 = time.perf_counter(), forward.runs
-
     refined = refined_forward(forward, measurements, skin_bounds, (mesh_dir, comm, cache_dir), settings)
-    model, data, baseline, disc = compare(forward, refined, data, start, settings, timings)
+    model, data, baseline, disc = compare(forward, refined, data, start, settings, timings, work)
     baseline, data, noise_statement = check_noise_statement(
         model, baseline, data, (half, band), settings.max_iterations // 2
     )
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
+    work.compare = meter.lap()
     if disc is not None and not noise_statement.consistent:  # the baseline was refitted with the estimated noise
         disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
     carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
@@ -250,12 +272,16 @@ def run_check(
         max_iterations=settings.max_iterations,
     )  # also the baseline's metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
+    work.diagnose = meter.lap()
 
     t0, runs0 = time.perf_counter(), forward.runs
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
+    work.add = meter.lap()
     next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), carried, timings)
+    work.next_round = meter.lap()
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
+    timings.work = work
     diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
     return CheckResult(
         data=data,
@@ -352,11 +378,13 @@ def compare(
     start: np.ndarray,
     settings: CheckSettings,
     timings: CheckTimings,
+    work: PhaseWork,
 ) -> tuple[ForwardModel, Data, Calibration, DiscretisationError | None]:
     """The baseline calibration; with ``settings.discretisation`` the mesh's own error is
     estimated at it (``refined()``: the model on the refined mesh; one run per design), the
     model corrected by a fitted multiple of it (:class:`CorrectedForward`), the data given the
-    carried model error, and the baseline recalibrated with that multiple.
+    carried model error, and the baseline recalibrated with that multiple. The refined mesh's
+    time, runs and work go to ``timings`` and ``work``.
     Returns (model, data, baseline, error)."""
     near = PRE_CORRECTION_TOLERANCE if settings.discretisation else 0.0
     baseline = calibrate(
@@ -366,8 +394,10 @@ def compare(
         return forward, data, baseline, None
     fine = refined()
     log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
+    before = solver_work(forward.comm)
     fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data, settings.refinement)
+    work.refined = solver_work(forward.comm) - before
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
     # the amplitude starts at 1, away from its optimum: the full number of trial steps

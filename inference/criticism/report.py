@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.criticism.calibration import Calibration
-from inference.criticism.check import CheckResult
+from inference.criticism.check import CheckResult, PhaseWork
 from inference.criticism.diagnosis import CandidateScore
 from inference.criticism.report_figures import candidates_plot, error_falls_plot, regions_map, residual_maps
 from inference.criticism.report_file import finite_or_null, report_dict
@@ -252,7 +252,7 @@ def undetermined(cal: Calibration, names: list[str], bounds: np.ndarray) -> list
 
 
 def cost_lines(result: CheckResult) -> list[str]:
-    """The wall time and FE runs of each phase."""
+    """The wall time, FE runs and linear-algebra work of each phase."""
     t = result.timings
     return [
         "",
@@ -265,5 +265,25 @@ def cost_lines(result: CheckResult) -> list[str]:
         f"{result.fe_seconds_per_run:.2f} s per FE run; {t.fe_runs_continued} runs started from the "
         f"states of a nearby point instead of a load ramp; {t.fe_runs_read_from_cache} runs read from "
         f"the cache of an earlier run (`fe_runs/`).",
+        *work_lines(t.work),
         "",
     ]
+
+
+def work_lines(work: PhaseWork | None) -> list[str]:
+    """A table of each phase's Newton steps, factorisations and triangular solves (all ranks)."""
+    if work is None:
+        return []
+    rows = [
+        f"| {label} | {w.newton_steps} | {w.factorisations} | {w.triangular_solves} |"
+        for label, w in (
+            ("setup", work.setup),
+            ("compare", work.compare),
+            ("… of which the refined mesh", work.refined),
+            ("diagnose", work.diagnose),
+            ("add", work.add),
+            ("next round", work.next_round),
+        )
+    ]
+    header = ["", "| phase | Newton steps | LU factorisations | triangular solves |", "|---|---|---|---|"]
+    return [*header, *rows]

@@ -224,7 +224,7 @@ class ReportFile:
         discretisation: None if not estimated (``--no-discretisation``).
         noise_statement: whether the stated noise held, and the sd the check went on with.
         failed_runs: the FE runs that did not converge.
-        timings: wall seconds and FE runs of each phase.
+        timings: wall seconds, FE runs and linear-algebra work of each phase.
     """
 
     diagnosis: ReportDiagnosis
@@ -257,5 +257,5 @@ def _report_file(d: dict) -> ReportFile:
         discretisation=None if d["discretisation"] is None else ReportDiscretisation.from_json(d["discretisation"]),
         noise_statement=ReportNoiseStatement(**d["noise_statement"]),
         failed_runs=[ReportFailedRun(**f) for f in d["failed_runs"]],
-        timings=CheckTimings(**d["timings"]),
+        timings=CheckTimings.from_json(d["timings"]),
     )
