@@ -15,7 +15,7 @@ from inference.criticism import Data, NoiseModel, calibrate, diagnose, rank_regi
 from inference.criticism.calibration import CHI2_TOLERANCE
 from inference.criticism.check import PhaseWork
 from inference.criticism.diagnosis import score_candidates, signatures
-from inference.criticism.report import write_report
+from inference.criticism.report import uncalibrated_note, write_report
 from inference.criticism.report_file import (
     ReportDiagnosis,
     ReportDiscretisation,
@@ -801,7 +801,14 @@ def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_w
     assert f"--add {a} {b}" in second.text
     both = extend(linear_world, with_a, data, b, max_iterations=20)
     assert not diagnose(linear_world, both, data, [], half=10.0, band=4.0).metrics.structured
-    assert_report_reads_back(linear_check(linear_world, data, (cal, first), (with_a, second)), tmp_path)
+    result = linear_check(linear_world, data, (cal, first), (with_a, second))
+    assert_report_reads_back(result, tmp_path)
+    # the report says why a strong score names nothing only where that happens: a consistent
+    # residual with a carried mesh error
+    assert uncalibrated_note(result) == []
+    result.diagnosis.metrics = dataclasses.replace(first.metrics, structured=False)
+    assert "does not say that an effect is missing" in " ".join(uncalibrated_note(result))
+    assert uncalibrated_note(dataclasses.replace(result, discretisation=None)) == []
 
 
 def linear_check(world, data, baseline, added):

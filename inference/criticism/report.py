@@ -10,7 +10,7 @@ import numpy as np
 
 from inference.criticism.calibration import Calibration
 from inference.criticism.check import CheckResult, PhaseWork
-from inference.criticism.diagnosis import CandidateScore
+from inference.criticism.diagnosis import STRONG_EVIDENCE, CandidateScore
 from inference.criticism.report_figures import candidates_plot, error_falls_plot, regions_map, residual_maps
 from inference.criticism.report_file import finite_or_null, report_dict
 from skinfem.effects import EFFECTS, get_effect
@@ -145,7 +145,33 @@ def candidate_lines(result: CheckResult) -> list[str]:
         "the effect added.",
         "",
     ]
-    return lines + candidate_table(result.diagnosis.scores) + ["", "![candidates](candidates.png)"]
+    return (
+        lines
+        + candidate_table(result.diagnosis.scores)
+        + uncalibrated_note(result)
+        + ["", "![candidates](candidates.png)"]
+    )
+
+
+def uncalibrated_note(result: CheckResult) -> list[str]:
+    """Why a strong linearised score names nothing when the residual is consistent and a mesh error
+    is carried: the carried error is a Gaussian summary of a deterministic field, and along some
+    candidate's signature its remainder alone scores high (docs/criticism.md §16, §19)."""
+    d = result.diagnosis
+    if (
+        d.metrics.structured
+        or result.discretisation is None
+        or not any(s.delta_bic > STRONG_EVIDENCE for s in d.scores)
+    ):
+        return []
+    return [
+        "",
+        "The residual is consistent with the noise and the carried discretisation error, so no candidate is "
+        "named: a ΔBIC above 6 here does not say that an effect is missing. The mesh's remaining error is "
+        "carried as a correlated Gaussian field; where its actual remainder runs along a candidate's signature "
+        "that candidate's linearised test scores high on its own (on independent data with no hidden effect, "
+        "compressibility does: docs/criticism.md §19).",
+    ]
 
 
 def candidate_table(scores: list[CandidateScore]) -> list[str]:
