@@ -32,15 +32,6 @@ class SolverWork:
     def __sub__(self, other: SolverWork) -> SolverWork:
         return SolverWork(*(getattr(self, f.name) - getattr(other, f.name) for f in fields(self)))
 
-    def __add__(self, other: SolverWork) -> SolverWork:
-        return SolverWork(*(getattr(self, f.name) + getattr(other, f.name) for f in fields(self)))
-
-    def summary(self) -> str:
-        return (
-            f"{self.newton_steps} Newton steps, {self.factorisations} factorisations, "
-            f"{self.triangular_solves} triangular solves"
-        )
-
 
 def start_counting() -> None:
     """Switch PETSc's event log on (idempotent; the counts start when it is first on)."""
@@ -51,7 +42,7 @@ def start_counting() -> None:
 def solver_work(comm: MPI.Comm) -> SolverWork:
     """The counts since :func:`start_counting`, summed over ``comm`` (collective)."""
     local = np.array([PETSc.Log.Event(event).getPerfInfo()["count"] for event in EVENTS.values()], np.int64)
-    return SolverWork(*(int(n) for n in comm.allreduce(local, op=MPI.SUM)))
+    return SolverWork(**{name: int(n) for name, n in zip(EVENTS, comm.allreduce(local, op=MPI.SUM))})
 
 
 class WorkMeter:
