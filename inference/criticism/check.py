@@ -38,7 +38,7 @@ from skinfem.config import Config
 from skinfem.dic import StrainGauge
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.parallel import collective, on_root
-from skinfem.solver_work import SolverWork, WorkMeter, solver_work
+from skinfem.solver_work import SolverWork, WorkMeter
 from surrogate.emulator import Emulator
 
 log = logging.getLogger(__name__)
@@ -104,8 +104,8 @@ class PhaseWork:
     """Newton steps, LU factorisations and triangular solves of each phase of a check (all ranks)."""
 
     setup: SolverWork = SolverWork()
-    compare: SolverWork = SolverWork()  # includes the refined mesh's
-    refined: SolverWork = SolverWork()
+    compare: SolverWork = SolverWork()  # includes the mesh-error estimate's
+    refined: SolverWork = SolverWork()  # the mesh-error estimate: the refined run and its starting states
     diagnose: SolverWork = SolverWork()
     add: SolverWork = SolverWork()
     next_round: SolverWork = SolverWork()
@@ -236,7 +236,8 @@ def run_check(
     """
     if settings.discretisation:  # a refinement that does not apply: before any FE run, said once
         collective(comm, lambda: error_ratio(config, settings.refinement), (ValueError,))
-    timings, work, meter = CheckTimings(), PhaseWork(), WorkMeter(comm)
+    timings, meter = CheckTimings(work=PhaseWork()), WorkMeter(comm)
+    work = timings.work
     t0 = time.perf_counter()
     forward = FEForward(
         config, measurements, skin_bounds, mesh_dir, settings.increments, comm, cache_dir, settings.gauge
@@ -281,7 +282,6 @@ def run_check(
     next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), carried, timings)
     work.next_round = meter.lap()
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
-    timings.work = work
     diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
     return CheckResult(
         data=data,
@@ -394,10 +394,10 @@ def compare(
         return forward, data, baseline, None
     fine = refined()
     log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
-    before = solver_work(forward.comm)
+    meter = WorkMeter(forward.comm)
     fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
     disc = estimate(forward, fine, baseline.x, data, settings.refinement)
-    work.refined = solver_work(forward.comm) - before
+    work.refined = meter.lap()
     model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
     # the amplitude starts at 1, away from its optimum: the full number of trial steps

@@ -167,10 +167,10 @@ def uncalibrated_note(result: CheckResult) -> list[str]:
     return [
         "",
         "The residual is consistent with the noise and the carried discretisation error, so no candidate is "
-        "named: a ΔBIC above 6 here does not say that an effect is missing. The mesh's remaining error is "
-        "carried as a correlated Gaussian field; where its actual remainder runs along a candidate's signature "
-        "that candidate's linearised test scores high on its own (on independent data with no hidden effect, "
-        "compressibility does: docs/criticism.md §19).",
+        f"named: a ΔBIC above {STRONG_EVIDENCE:g} here does not say that an effect is missing. The mesh's "
+        "remaining error is carried as a correlated Gaussian field; where its actual remainder runs along a "
+        "candidate's signature that candidate's linearised test scores high on its own (on independent data with "
+        "no hidden effect, compressibility does: docs/criticism.md §19).",
     ]
 
 
@@ -305,7 +305,7 @@ def work_lines(work: PhaseWork | None) -> list[str]:
         for label, w in (
             ("setup", work.setup),
             ("compare", work.compare),
-            ("… of which the refined mesh", work.refined),
+            ("… of which the mesh-error estimate", work.refined),
             ("diagnose", work.diagnose),
             ("add", work.add),
             ("next round", work.next_round),
