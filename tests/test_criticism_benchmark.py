@@ -82,7 +82,13 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
 
     bench = load_benchmark()
     args = Namespace(
-        config="check", data="q2-limit", refine="edge", start="centre", results=tmp_path / "r.json", keep_recorded=True
+        config="check",
+        data="q2-limit",
+        refine="edge",
+        start="centre",
+        confirm=1,
+        results=tmp_path / "r.json",
+        keep_recorded=True,
     )
     assert bench.recorded_rows(args) == {}
     command = (
@@ -94,6 +100,8 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
     assert bench.recorded_rows(Namespace(**{**vars(args), "keep_recorded": False})) == {}  # a rerun measures anew
     with pytest.raises(SystemExit, match="another setup"):
         bench.recorded_rows(Namespace(**{**vars(args), "refine": "uniform"}))
+    with pytest.raises(SystemExit, match="another setup"):
+        bench.recorded_rows(Namespace(**{**vars(args), "confirm": 2}))
     for malformed in ("{not json", json.dumps({"command": command}), json.dumps({**earlier, "rows": [1]})):
         args.results.write_text(malformed)
         with pytest.raises(SystemExit, match="not a results file"):
@@ -108,7 +116,7 @@ def test_a_benchmark_check_is_a_valid_skinid_check_command_started_at_the_box_ce
     from skinfem.config import load_config
 
     bench = load_benchmark()
-    args = argparse.Namespace(config="check", refine="edge", start="centre", mesh_dir=tmp_path / "meshes")
+    args = argparse.Namespace(config="check", refine="edge", start="centre", confirm=2, mesh_dir=tmp_path / "meshes")
     files = [tmp_path / "m_0.csv", tmp_path / "m_1.csv"]
     argv = bench.check_argv(files, tmp_path / "none_0", ["pre_stretch"], args)
     assert argv[0] == "check"
@@ -116,6 +124,6 @@ def test_a_benchmark_check_is_a_valid_skinid_check_command_started_at_the_box_ce
     assert parsed.measurement == files and Path(parsed.out) == tmp_path / "none_0" / "report"
     assert parsed.start == load_config("check").sweep.box.mean(axis=1).tolist()
     assert (parsed.refine, parsed.spacing, parsed.increments, parsed.add) == ("edge", 2.0, 2, ["pre_stretch"])
-    assert (parsed.noise_length, parsed.noise_nugget, parsed.resume) == (2.0, 0.3, True)
+    assert (parsed.noise_length, parsed.noise_nugget, parsed.resume, parsed.confirm) == (2.0, 0.3, True, 2)
     spread = argparse.Namespace(**{**vars(args), "start": "spread"})
     assert build_parser("skinid check").parse_args(bench.check_argv(files, tmp_path, [], spread)[1:]).start is None
