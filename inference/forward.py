@@ -290,7 +290,8 @@ class FEForward(ForwardModel):
         estimate), each rank from the designs it runs: Newton from the interpolated fields
         instead of a load ramp. A design ``other`` holds no states for (its fields came from
         ``cache_dir``, e.g. in a resumed check) is first solved by ``other`` at ``x``: one run on
-        its mesh instead of a ramp on this one.
+        its mesh instead of a ramp on this one. Nothing is solved when this model already holds
+        its fields at ``x`` (:meth:`holds`; a resumed check's estimate).
 
         The first frame of a design is then solved by pseudo-transient continuation, later ones
         by Newton (up to ``TRANSFER_ITERATIONS``) from their guess plus the first frame's
@@ -298,7 +299,7 @@ class FEForward(ForwardModel):
         Newton stalls or needs many steps (quadratic check mesh to its edge refinement: 3
         without progress for the biaxial design, 8 for the mixed one), while on a refined mesh
         a load ramp costs more (benchmarks/results/far_start_transfer.json)."""
-        if self.continuation is None or other.continuation is None:
+        if self.continuation is None or other.continuation is None or self.holds(x):
             return
         other._solve_designs_without_states(x)
 
@@ -308,6 +309,12 @@ class FEForward(ForwardModel):
 
         collective(self.comm, interpolate)
         self.transferred = True
+
+    def holds(self, x: np.ndarray) -> bool:
+        """Whether the fields at ``x`` are known without a simulation: in memory (also from a run
+        with derivatives) or in ``cache_dir``. Collective: every rank gets rank 0's answer."""
+        key = self._encode(x, ())
+        return key in self._cache or bool(self._from_richer_runs([key])) or bool(self._from_disk([key]))
 
     def _solve_designs_without_states(self, x: np.ndarray) -> None:
         """Run at ``x`` each design that this rank runs for a single point (``j`` = rank mod

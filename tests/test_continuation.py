@@ -205,7 +205,8 @@ def test_a_refined_mesh_continued_from_the_check_mesh_equals_its_ramp(small_conf
 def test_a_refined_mesh_continues_from_a_check_mesh_whose_fields_came_from_its_cache(small_config, mesh_dir, tmp_path):
     """In a resumed check the check mesh's fields come from ``cache_dir`` and it holds no
     converged states: it solves the point once (one run per design) and the refined mesh still
-    continues from its fields instead of ramping."""
+    continues from its fields instead of ramping; once the refined fields are cached as well, a
+    resumed estimate solves nothing."""
     from inference.criticism.discretisation import refined_config
 
     def check_mesh():
@@ -223,8 +224,16 @@ def test_a_refined_mesh_continues_from_a_check_mesh_whose_fields_came_from_its_c
     fine = two_design_forward(refined_config(small_config, "edge"), mesh_dir, continuation=True)
     fine.continue_from(coarse, x)
     assert coarse.runs == 2
+    fine.cache_dir = tmp_path
     fine(x)
     assert fine.continued == 2
+    # resumed again: the refined fields are in the cache too, so nothing is solved on either mesh
+    coarse = check_mesh()
+    again = two_design_forward(refined_config(small_config, "edge"), mesh_dir, continuation=True)
+    again.cache_dir = tmp_path
+    again.continue_from(coarse, x)
+    np.testing.assert_array_equal(again(x), fine(x))
+    assert (coarse.runs, again.runs, again.reused) == (0, 0, 2)
 
 
 @pytest.mark.slow
