@@ -312,9 +312,20 @@ class FEForward(ForwardModel):
 
     def holds(self, x: np.ndarray) -> bool:
         """Whether the fields at ``x`` are known without a simulation: in memory (also from a run
-        with derivatives) or in ``cache_dir``. Collective: every rank gets rank 0's answer."""
-        key = self._encode(x, ())
-        return key in self._cache or bool(self._from_richer_runs([key])) or bool(self._from_disk([key]))
+        with derivatives) or in ``cache_dir`` (then read into memory, not read again by the next
+        evaluation). Collective: every rank gets rank 0's answer."""
+        return not self._recall([self._encode(x, ())])
+
+    def _recall(self, keys: list[bytes]) -> list[bytes]:
+        """Move into memory what ``keys`` already have (a run with more derivatives, or an entry of
+        ``cache_dir``, counted as reused); returns the keys still to simulate. Collective."""
+        todo = [key for key in dict.fromkeys(keys) if key not in self._cache]
+        self._cache.update(self._from_richer_runs(todo))
+        todo = [key for key in todo if key not in self._cache]
+        stored = self._from_disk(todo)
+        self._cache.update(stored)
+        self.reused += len(stored) * len(self.designs)
+        return [key for key in todo if key not in stored]
 
     def _solve_designs_without_states(self, x: np.ndarray) -> None:
         """Run at ``x`` each design that this rank runs for a single point (``j`` = rank mod
@@ -401,13 +412,7 @@ class FEForward(ForwardModel):
     def _evaluate(self, points: Sequence[np.ndarray], names: Sequence[str]) -> list[np.ndarray | None]:
         """Cached, rank-spread simulations: (n_obs, n_max, 3, 1 + k) per point, None if failed."""
         keys = [self._encode(x, names) for x in points]
-        todo = [key for key in dict.fromkeys(keys) if key not in self._cache]
-        self._cache.update(self._from_richer_runs(todo))
-        todo = [key for key in todo if key not in self._cache]
-        stored = self._from_disk(todo)
-        self._cache.update(stored)
-        self.reused += len(stored) * len(self.designs)
-        todo = [key for key in todo if key not in stored]
+        todo = self._recall(keys)
         start = time.perf_counter()
         units = [(key, j) for key in todo for j in range(len(self.designs))]  # one simulation each
         mine = collective(self.comm, lambda: {u: self._run(*u) for u in units[self.comm.rank :: self.comm.size]})
