@@ -430,6 +430,8 @@ def main() -> None:
         "--keep-recorded", action="store_true", help="keep the results file's rows and run only the missing ones"
     )
     args = parser.parse_args()
+    if args.confirm < 0:  # before the data's FE runs, not after them in the first check
+        parser.error(f"--confirm must be >= 0, got {args.confirm}")
     comm = MPI.COMM_WORLD
     points = dic_points(18.0, 1.0, np.random.default_rng(0))
     recorded = recorded_rows(args)
