@@ -102,9 +102,10 @@ def case_fields(forward, case: Case, x0: np.ndarray, points: tuple[np.ndarray, n
     return fields
 
 
-def fit_models(config, designs, points: tuple[np.ndarray, np.ndarray], args, comm) -> dict:
+def fit_models(config, designs, points: tuple[np.ndarray, np.ndarray], args, comm, on_case) -> dict:
     """On ``designs``: each model of each case calibrated on the case's noise-free data; its
-    chi^2, parameters, FE runs and seconds."""
+    chi^2, parameters, FE runs and seconds. ``on_case`` is called with the cases done so far
+    after each one."""
     from criticism import NOISE, TRUTH
 
     from inference.criticism.data import Data, NoiseModel
@@ -136,6 +137,7 @@ def fit_models(config, designs, points: tuple[np.ndarray, np.ndarray], args, com
             for name, start in starts.items():
                 fits[name] = fit(forward, data, start, free, f"{case.hidden}: {name}")
         out[case.hidden] = {"n": data.n, "true": " + ".join(case.true) or "skin alone", "fits": fits}
+        on_case(out)
     return out
 
 
@@ -180,32 +182,41 @@ def main() -> None:
     comm = MPI.COMM_WORLD
     config = load_config(args.config)
     designs = [tuple(round(a, 12) for a in d) for d in config.sweep.designs]
-    sets = []
+    sets: list[dict] = []
     for chosen in design_sets(designs, args.designs):
         start = time.perf_counter()
-        cases = fit_models(config, chosen, check_points(), args, comm)
-        sets.append({"designs": chosen, "cases": cases, "seconds": time.perf_counter() - start})
-        if comm.rank == 0:
-            print(
-                chosen[2:] or "recorded",
-                {c: {m: round(f["chi2"]) for m, f in v["fits"].items()} for c, v in cases.items()},
-                flush=True,
-            )
+        current = {"designs": chosen, "cases": {}, "seconds": None}
+        sets.append(current)
+
+        def progress(cases: dict) -> None:
+            current["cases"] = cases
+            if comm.rank == 0:
+                write_results(args, comm.size, sets, finished=False)
+
+        fit_models(config, chosen, check_points(), args, comm, progress)
+        current["seconds"] = time.perf_counter() - start
     if comm.rank == 0:
-        result = {
-            "command": (
-                f"mpirun -n {comm.size} python benchmarks/design_separation.py --config {args.config} "
-                f"--designs {args.designs} --data {args.data} --data-dir {args.data_dir} --out {args.out} "
-                f"--results {args.results}"
-            ),
-            "config": args.config,
-            "points": len(check_points()[0]),
-            "data": args.data,
-            "frame": 1.0,
-            "noise": "sd 1e-3, correlation length 2 mm, nugget 0.3 (benchmarks/criticism.py)",
-            "design_sets": sets,
-        }
-        args.results.write_text(json.dumps(result, indent=2) + "\n")
+        write_results(args, comm.size, sets, finished=True)
+
+
+def write_results(args, ranks: int, sets: list[dict], finished: bool) -> None:
+    """The results file: the design sets fitted so far (``finished`` False while cases remain:
+    a stopped run keeps its finished fits here, and its FE runs in ``--out``)."""
+    result = {
+        "command": (
+            f"mpirun -n {ranks} python benchmarks/design_separation.py --config {args.config} "
+            f"--designs {args.designs} --data {args.data} --data-dir {args.data_dir} --out {args.out} "
+            f"--results {args.results}"
+        ),
+        "finished": finished,
+        "config": args.config,
+        "points": len(check_points()[1]),
+        "data": args.data,
+        "frame": 1.0,
+        "noise": "sd 1e-3, correlation length 2 mm, nugget 0.3 (benchmarks/criticism.py)",
+        "design_sets": sets,
+    }
+    args.results.write_text(json.dumps(result, indent=2) + "\n")
 
 
 if __name__ == "__main__":
