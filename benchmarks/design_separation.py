@@ -74,13 +74,11 @@ CASES = [
 def check_points(spacing: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """The criticism benchmark's point cloud (n, 2) [mm] and the indices (m,) of the points its
     checks keep (one per ``spacing`` square)."""
-    from inference.observations import Measurement, thin
+    from inference.observations import thinned
     from inference.synthetic import dic_points
 
     cloud = dic_points(18.0, 1.0, np.random.default_rng(0))
-    index = np.repeat(np.arange(len(cloud), dtype=float)[:, None], 3, axis=1)  # thinned like a strain
-    kept = thin(Measurement(Path("cloud"), np.zeros(2), 1.0, cloud, index, None), spacing)
-    return cloud, kept.strain[:, 0].astype(int)
+    return cloud, thinned(cloud, spacing)
 
 
 def case_fields(forward, case: Case, x0: np.ndarray, points: tuple[np.ndarray, np.ndarray], args, comm) -> np.ndarray:
@@ -148,7 +146,7 @@ def fit(forward, data, x0: np.ndarray, free: list[int], label: str) -> dict:
     runs0 = forward.runs
     cal = calibrate(forward, data, x0, free, label=label)
     return {
-        "chi2": float(np.nansum(cal.whitened**2)),
+        "chi2": cal.chi2,
         "x": {forward.names[i]: float(cal.x[i]) for i in free},
         "fe_runs": forward.runs - runs0,
         "seconds": cal.seconds,
@@ -182,6 +180,7 @@ def main() -> None:
     comm = MPI.COMM_WORLD
     config = load_config(args.config)
     designs = [tuple(round(a, 12) for a in d) for d in config.sweep.designs]
+    points = check_points()
     sets: list[dict] = []
     for chosen in design_sets(designs, args.designs):
         start = time.perf_counter()
@@ -191,17 +190,18 @@ def main() -> None:
         def progress(cases: dict) -> None:
             current["cases"] = cases
             if comm.rank == 0:
-                write_results(args, comm.size, sets, finished=False)
+                write_results(args, comm.size, len(points[1]), sets, finished=False)
 
-        fit_models(config, chosen, check_points(), args, comm, progress)
+        fit_models(config, chosen, points, args, comm, progress)
         current["seconds"] = time.perf_counter() - start
     if comm.rank == 0:
-        write_results(args, comm.size, sets, finished=True)
+        write_results(args, comm.size, len(points[1]), sets, finished=True)
 
 
-def write_results(args, ranks: int, sets: list[dict], finished: bool) -> None:
-    """The results file: the design sets fitted so far (``finished`` False while cases remain:
-    a stopped run keeps its finished fits here, and its FE runs in ``--out``)."""
+def write_results(args, ranks: int, n_points: int, sets: list[dict], finished: bool) -> None:
+    """The results file (``n_points``: the kept points per design): the design sets fitted so far
+    (``finished`` False while cases remain: a stopped run keeps its finished fits here, and its
+    FE runs in ``--out``)."""
     result = {
         "command": (
             f"mpirun -n {ranks} python benchmarks/design_separation.py --config {args.config} "
@@ -210,7 +210,7 @@ def write_results(args, ranks: int, sets: list[dict], finished: bool) -> None:
         ),
         "finished": finished,
         "config": args.config,
-        "points": len(check_points()[1]),
+        "points": n_points,
         "data": args.data,
         "frame": 1.0,
         "noise": "sd 1e-3, correlation length 2 mm, nugget 0.3 (benchmarks/criticism.py)",

@@ -280,13 +280,19 @@ def map_to_cells(measurement: Measurement, cells_xy: np.ndarray, max_gap: float 
     )
 
 
+def thinned(xy: np.ndarray, spacing: float) -> np.ndarray:
+    """Indices (m,), ascending, of the points of ``xy`` (n, 2) [mm] that :func:`thin` keeps: the
+    first in each square of side ``spacing`` [mm]."""
+    cells = np.floor(xy / spacing).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.sort(first)
+
+
 def thin(measurement: Measurement, spacing: float) -> Measurement:
     """Keep one point (the first) per square of side ``spacing`` [mm]: DIC points closer than
     the strain window carry little independent information, and the check's cost grows with
     the point count (dense noise covariances)."""
-    cells = np.floor(measurement.xy / spacing).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
-    keep = np.sort(first)
+    keep = thinned(measurement.xy, spacing)
     sd = None if measurement.sd is None else measurement.sd[keep]
     return Measurement(
         measurement.path, measurement.alpha, measurement.t, measurement.xy[keep], measurement.strain[keep], sd
