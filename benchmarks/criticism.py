@@ -308,12 +308,18 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
 
 
 PHASES = ("compare", "refined", "diagnose", "add", "next_round")
-BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitted")
+BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitted", "mesh_share", "mesh_like")
+
+
+def mesh_shares(diagnosis: ReportDiagnosis) -> dict[str, float | None]:
+    """Each candidate's share of the check mesh's own error (None in reports written before it was measured)."""
+    return {c.effect: c.mesh_share for c in diagnosis.candidates}
 
 
 def report_summary(folder: Path) -> dict:
     """From the case's (last) report.json: seconds, FE runs and solver work of each phase, the baseline's
-    chi^2/dof and posterior-predictive p, its best candidate and the competing larger model error."""
+    chi^2/dof and posterior-predictive p, its best candidate, every candidate's share of the mesh's own
+    error and the competing larger model error."""
     from inference.criticism.report_file import read_report
 
     report = read_report(folder / "report" / "report.json")
@@ -326,6 +332,8 @@ def report_summary(folder: Path) -> dict:
         "chi2_per_dof": report.versions[0].metrics.chi2_per_dof,
         "ppc_p": report.versions[0].metrics.ppc_p,
         "best_candidate": best and {key: getattr(best, key) for key in BEST_CANDIDATE},
+        "mesh_shares": mesh_shares(report.diagnosis),
+        "next_round_mesh_shares": report.next_round and mesh_shares(report.next_round),
         "larger_model_error": larger and dataclasses.asdict(larger),
     }
 

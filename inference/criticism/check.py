@@ -260,6 +260,7 @@ def run_check(
     if disc is not None and not noise_statement.consistent:  # the baseline was refitted with the estimated noise
         disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
     carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
+    shift = None if disc is None else disc.shift
     log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
     diagnosis = diagnose(
         model,
@@ -270,6 +271,7 @@ def run_check(
         band,
         settings.confirm,
         carried_sigma=carried,
+        mesh_shift=shift,
         max_iterations=settings.max_iterations,
     )  # also the baseline's metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
@@ -279,7 +281,7 @@ def run_check(
     versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     work.add = meter.lap()
-    next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), carried, timings)
+    next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), (carried, shift), timings)
     work.next_round = meter.lap()
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
     diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
@@ -335,12 +337,13 @@ def _next_round(
     data: Data,
     settings: CheckSettings,
     region: tuple[float, float],
-    carried_sigma: float,
+    mesh_error: tuple[float, np.ndarray | None],
     timings: CheckTimings,
 ) -> Diagnosis | None:
     """With ``settings.add``: the diagnosis repeated on the last version, over the candidates not
     added (what is still missing); None otherwise. ``region``: the membrane's half size and the
-    edge band [mm]; ``carried_sigma``: RMS of the carried mesh error [sd of the noise used]."""
+    edge band [mm]; ``mesh_error``: RMS of the carried mesh error [sd of the noise used] and the
+    two-mesh shift it was estimated from (None without one)."""
     if not settings.add:
         return None
     log.info("diagnosing what is still missing with %s added", " and ".join(settings.add))
@@ -351,8 +354,9 @@ def _next_round(
         [c for c in settings.candidates if c not in settings.add],
         *region,
         settings.confirm,
-        carried_sigma=carried_sigma,
+        carried_sigma=mesh_error[0],
         added=settings.add,
+        mesh_shift=mesh_error[1],
         max_iterations=settings.max_iterations,
     )
     timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs

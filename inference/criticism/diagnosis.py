@@ -13,7 +13,7 @@ from scipy import optimize, stats
 
 from inference.criticism.calibration import Calibration, calibrate
 from inference.criticism.data import Data, stack
-from inference.criticism.discretisation import MESH_RESOLVED_SIGMA
+from inference.criticism.discretisation import AMPLITUDE, MESH_RESOLVED_SIGMA
 from inference.criticism.metrics import (
     Hotspot,
     RegionResidual,
@@ -35,6 +35,11 @@ MIN_SHARE = 0.5  # ... and it must explain at least this share of the excess res
 # has a blind linearised test (a large effect may still differ from what they absorb): it is fitted
 CONFOUNDED = 0.8
 MAX_MESH_FACTOR = 10.0  # the largest multiple of the carried model error the other explanation tries
+# a candidate whose signature reproduces at least this share of the mesh's own error (the two-mesh
+# shift, beyond what the calibrated parameters reproduce) cannot be told from that error while it
+# exceeds the noise. Measured on the quadratic check mesh's checks of converged data: compressibility
+# 0.13-0.34, every other registered candidate <= 0.023 (docs/criticism.md §22)
+MESH_LIKE = 0.05
 NOISE_STRUCTURE_Z = 3.0  # |Moran z| below which a residual has the stated noise's spatial structure
 
 
@@ -122,7 +127,11 @@ class CandidateScore:
     (the strongest candidates only), which also holds when the effect is too large for the
     linearisation. ``share_explained`` is the share of the excess residual chi^2 (above its
     noise expectation) that the effect removes; ``explains`` needs strong evidence and at
-    least half of the excess.
+    least half of the excess. ``mesh_share`` is the share of the check mesh's own error (its
+    two-mesh shift, beyond what re-tuning the calibrated parameters reproduces) that the
+    effect's signature reproduces (:func:`mesh_shares`; None without a mesh-error estimate);
+    ``mesh_like``: the effect would explain the residual, but reproduces at least
+    ``MESH_LIKE`` of that error while it exceeds the noise, so it is not named.
     """
 
     effect: str
@@ -137,6 +146,12 @@ class CandidateScore:
     estimate: dict[str, float]  # one-step (linear) estimate of the effect's parameters
     fitted: bool = False  # delta_bic, share_explained, estimate come from a calibration
     explains: bool = False
+    mesh_share: float | None = None
+    mesh_like: bool = False
+
+    def resembles_mesh_error(self) -> bool:
+        """Its signature reproduces ``MESH_LIKE`` or more of the check mesh's own error."""
+        return self.mesh_share is not None and self.mesh_share >= MESH_LIKE
 
     def summary(self) -> str:
         est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in self.estimate.items())
@@ -226,6 +241,32 @@ def score_candidates(cal: Calibration, data: Data, sigs: dict[str, np.ndarray]) 
     return sorted(out, key=lambda s: -s.delta_bic)
 
 
+def mesh_shares(
+    cal: Calibration, data: Data, sigs: dict[str, np.ndarray], shift: np.ndarray, amplitude: int | None
+) -> dict[str, float]:
+    """Share of the mesh's own error that each candidate's signature reproduces.
+
+    ``shift`` (n_obs, n_pts, 3): the two-mesh shift f_better - f_check, the shape of the check
+    mesh's error; whitened like the residual, with what re-tuning ``cal``'s free parameters
+    reproduces projected out (all but ``amplitude``, the index of the correction's amplitude,
+    whose column is the shift itself). Returns, per candidate, the share of that remainder's
+    squared norm that the least-squares fit of the candidate's whitened signature (its own
+    part beyond the calibrated parameters) reproduces: 0 for a signature orthogonal to the
+    mesh's error, 1 for one that reproduces all of it."""
+    keep = [k for k, i in enumerate(cal.free) if i != amplitude]
+    q, _ = np.linalg.qr(cal.jac[:, keep])
+    d = data.whiten(shift)
+    d -= q @ (q.T @ d)
+    norm2 = float(d @ d)
+    out = {}
+    for name, S in sigs.items():
+        S_perp = S - q @ (q.T @ S)
+        beta, *_ = np.linalg.lstsq(S_perp, d, rcond=None)
+        fitted = S_perp @ beta
+        out[name] = float(fitted @ fitted / norm2) if norm2 > 0 else 0.0
+    return out
+
+
 def extend(forward: ForwardModel, cal: Calibration, data: Data, effect: str, **kwargs) -> Calibration:
     """Calibrate ``cal``'s model with ``effect``'s parameters freed (started at their null)."""
     added = forward.index(get_effect(effect).qualified_names())
@@ -288,6 +329,7 @@ def diagnose(
     confirm: int = 2,
     carried_sigma: float = 0.0,
     added: Sequence[str] = (),
+    mesh_shift: np.ndarray | None = None,
     **fit_kwargs,
 ) -> Diagnosis:
     """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
@@ -301,16 +343,27 @@ def diagnose(
     than the candidate the linearisation ranks first. ``carried_sigma``: RMS of the
     model error ``data`` carries (the mesh's, in noise sd; see :func:`verdict`). ``added``:
     effects ``cal`` already includes (a later round), kept in the verdict's ``--add`` advice.
+    ``mesh_shift``: the two-mesh shift of the carried error's estimate; a candidate that
+    reproduces ``MESH_LIKE`` of it (:func:`mesh_shares`) is neither fitted nor named while the
+    carried error exceeds half the noise (it could be the mesh's own error).
     """
     start, runs0 = time.perf_counter(), forward.runs
     metrics = residual_metrics(cal, data)
     regions, hotspot = rank_regions(cal, data, half, band), residual_hotspot(cal, data)
-    scores = score_candidates(cal, data, signatures(forward, cal, data, effects))
+    sigs = signatures(forward, cal, data, effects)
+    scores = score_candidates(cal, data, sigs)
+    if mesh_shift is not None:
+        amplitude = forward.names.index(AMPLITUDE) if AMPLITUDE in forward.names else None
+        shares = mesh_shares(cal, data, sigs, mesh_shift, amplitude)
+        for s in scores:
+            s.mesh_share = shares[s.effect]
+    unresolved = carried_sigma > MESH_RESOLVED_SIGMA
     fits: dict[str, Calibration] = {}
     if metrics.structured:
         excess, n = excess_chi2(cal, data), metrics.n_data
-        strong = [s for s in scores if s.delta_bic > STRONG_EVIDENCE][:confirm]
-        blind = [s for s in scores if confirm and s.confounding > CONFOUNDED and s not in strong]
+        testable = [s for s in scores if not (unresolved and s.resembles_mesh_error())]
+        strong = [s for s in testable if s.delta_bic > STRONG_EVIDENCE][:confirm]
+        blind = [s for s in testable if confirm and s.confounding > CONFOUNDED and s not in strong]
         for s in strong + blind:
             fit = fits[s.effect] = extend(forward, cal, data, s.effect, **fit_kwargs)
             drop = cal.chi2 - fit.chi2
@@ -321,11 +374,13 @@ def diagnose(
         scores.sort(key=lambda s: -s.delta_bic)
     larger = larger_model_error(cal, data) if metrics.structured else None
     for s in scores:
-        s.explains = (
+        enough = (
             metrics.structured
             and s.delta_bic > max(STRONG_EVIDENCE, larger.delta_bic if larger else -math.inf)
             and s.share_explained >= MIN_SHARE
         )
+        s.mesh_like = enough and unresolved and s.resembles_mesh_error()
+        s.explains = enough and not s.mesh_like
     text = verdict(metrics, scores, regions, hotspot, carried_sigma, added, larger)
     runs, seconds = forward.runs - runs0, time.perf_counter() - start
     return Diagnosis(metrics, regions, hotspot, scores, fits, text, runs, seconds, larger)
@@ -362,14 +417,17 @@ def verdict(
     )
     best = next((s for s in scores if s.explains), None)
     if best is None:
-        return text + " No candidate explains the residual." + unexplained(scores, carried_sigma, larger)
-    return text + named(best, scores, added)
+        text += " No candidate explains the residual." + unexplained(scores, carried_sigma, larger)
+    else:
+        text += named(best, scores, added)
+    return text + mesh_like_text(scores)
 
 
 def unexplained(scores: list[CandidateScore], carried_sigma: float, larger: LargerModelError | None) -> str:
     """The verdict's end when no candidate explains a structured residual: the best candidate and
     what it lacks, then whether the mesh's own error may be the cause or something outside the
     registry is missing."""
+    scores = [s for s in scores if not s.mesh_like]  # said apart (mesh_like_text)
     lead = f" The best candidate, {scores[0].summary()}, is not enough." if scores else ""
     compared = bool(scores and larger and STRONG_EVIDENCE < scores[0].delta_bic <= larger.delta_bic)
     if compared:
@@ -409,3 +467,22 @@ def rival_summary(score: CandidateScore) -> str:
     """A candidate that explains the residual as well, short: name, Delta BIC, share of the excess."""
     how = "fitted" if score.fitted else "linearised"
     return f"{score.effect} ({how} Delta BIC = {score.delta_bic:+.1f}, {score.share_explained:.0%} of the excess)"
+
+
+def mesh_like_text(scores: list[CandidateScore]) -> str:
+    """The candidates that would explain the residual but resemble the mesh's own error (not
+    named), with the largest share of that error any other candidate reproduces."""
+    alike = [s for s in scores if s.mesh_like]
+    if not alike:
+        return ""
+    others = [s.mesh_share for s in scores if not s.resembles_mesh_error() and s.mesh_share is not None]
+    bound = f" (the other candidates at most {max(others):.0%})" if others else ""
+    names = "; ".join(
+        f"{s.effect} ({'fitted' if s.fitted else 'linearised'} Delta BIC = {s.delta_bic:+.1f}, "
+        f"{s.share_explained:.0%} of the excess) reproduces {s.mesh_share:.0%} of the check mesh's own error"
+        for s in alike
+    )
+    return (
+        f" Not named: {names}{bound}. While that error exceeds the noise such an effect cannot be told from "
+        "discretisation: test it on a finer mesh."
+    )

@@ -122,7 +122,7 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     scores = result.diagnosis.scores
     fig, ax = plt.subplots(figsize=(7.5, 0.6 * len(scores) + 1.6))
     y = np.arange(len(scores))[::-1]
-    colors = ["C2" if s.explains else "0.6" for s in scores]
+    colors = ["C2" if s.explains else "C1" if s.mesh_like else "0.6" for s in scores]
     ax.barh(y, [s.delta_bic for s in scores], color=colors)
     ax.axvline(6, color="k", ls="--", lw=1, label="strong evidence (ΔBIC = 6)")
     larger = result.diagnosis.larger_model_error
@@ -136,6 +136,8 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
         fontsize=8,
     )
     ax.set_xlabel("ΔBIC of adding the effect [-] (> 0 favours it)")
-    ax.set_title("which effect is missing (green: explains the residual)", fontsize=10)
+    ax.set_title(
+        "which effect is missing (green: explains the residual; orange: so would the mesh's error)", fontsize=10
+    )
     ax.legend(fontsize=8, loc="lower right")  # the bars start at the top
     return save_figure(fig, path)
