@@ -38,7 +38,7 @@ MAX_MESH_FACTOR = 10.0  # the largest multiple of the carried model error the ot
 # a candidate whose signature reproduces at least this share of the mesh's own error (the two-mesh
 # shift, beyond what the calibrated parameters reproduce) cannot be told from that error while it
 # exceeds the noise. Measured on the quadratic check mesh's checks of converged data: compressibility
-# 0.13-0.34, every other registered candidate <= 0.023 (docs/criticism.md §22)
+# 0.12-0.35, every other registered candidate <= 0.023 (docs/criticism.md §22)
 MESH_LIKE = 0.05
 NOISE_STRUCTURE_Z = 3.0  # |Moran z| below which a residual has the stated noise's spatial structure
 

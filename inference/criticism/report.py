@@ -172,7 +172,7 @@ def uncalibrated_note(result: CheckResult) -> list[str]:
         f"named: a ΔBIC above {STRONG_EVIDENCE:g} here does not say that an effect is missing. The mesh's "
         "remaining error is carried as a correlated Gaussian field; where its actual remainder runs along a "
         "candidate's signature that candidate's linearised test scores high on its own (on independent data with "
-        "no hidden effect, compressibility does, which reproduces 13-34 % of the mesh's own error: "
+        "no hidden effect, compressibility does, which reproduces 12-35 % of the mesh's own error: "
         "docs/criticism.md §19, §22).",
     ]
 
