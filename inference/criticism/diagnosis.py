@@ -209,6 +209,14 @@ def excess_chi2(cal: Calibration, data: Data) -> float:
     return cal.chi2 - (data.n - len(cal.free))
 
 
+def fit_beyond(q: np.ndarray, S: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares fit of ``target`` (n,) by the part of the signature ``S`` (n, k) outside the
+    span of the orthonormal columns ``q`` (n, m): (coefficients (k,), fitted vector (n,))."""
+    S_perp = S - q @ (q.T @ S)
+    beta, *_ = np.linalg.lstsq(S_perp, target, rcond=None)
+    return beta, S_perp @ beta
+
+
 def score_candidates(cal: Calibration, data: Data, sigs: dict[str, np.ndarray]) -> list[CandidateScore]:
     """Linearised score test, share explained, confounding and Delta BIC of each candidate."""
     r = stack(cal.whitened, data.masks)
@@ -217,9 +225,7 @@ def score_candidates(cal: Calibration, data: Data, sigs: dict[str, np.ndarray]) 
     excess = excess_chi2(cal, data)
     out = []
     for name, S in sigs.items():
-        S_perp = S - q @ (q.T @ S)
-        beta, *_ = np.linalg.lstsq(S_perp, r, rcond=None)
-        fitted = S_perp @ beta
+        beta, fitted = fit_beyond(q, S, r)
         T = float(fitted @ fitted)
         raw = S @ beta
         dof = S.shape[1]
@@ -260,9 +266,7 @@ def mesh_shares(
     norm2 = float(d @ d)
     out = {}
     for name, S in sigs.items():
-        S_perp = S - q @ (q.T @ S)
-        beta, *_ = np.linalg.lstsq(S_perp, d, rcond=None)
-        fitted = S_perp @ beta
+        _, fitted = fit_beyond(q, S, d)
         out[name] = float(fitted @ fitted / norm2) if norm2 > 0 else 0.0
     return out
 
@@ -477,11 +481,7 @@ def mesh_like_text(scores: list[CandidateScore]) -> str:
         return ""
     others = [s.mesh_share for s in scores if not s.resembles_mesh_error() and s.mesh_share is not None]
     bound = f" (the other candidates at most {max(others):.0%})" if others else ""
-    names = "; ".join(
-        f"{s.effect} ({'fitted' if s.fitted else 'linearised'} Delta BIC = {s.delta_bic:+.1f}, "
-        f"{s.share_explained:.0%} of the excess) reproduces {s.mesh_share:.0%} of the check mesh's own error"
-        for s in alike
-    )
+    names = "; ".join(f"{rival_summary(s)} reproduces {s.mesh_share:.0%} of the check mesh's own error" for s in alike)
     return (
         f" Not named: {names}{bound}. While that error exceeds the noise such an effect cannot be told from "
         "discretisation: test it on a finer mesh."
