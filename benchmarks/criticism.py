@@ -206,7 +206,7 @@ def check_argv(files, folder: Path, add: list[str], args) -> list[str]:
         "--noise-length", "2", "--noise-nugget", "0.3", "--increments", "2", "--confirm", str(args.confirm),
         "--spacing", "2",
         "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
-        *(["--add", *add] if add else []),
+        *(["--add", *add] if add else []), *(["--mesh-drift"] if args.mesh_drift else []),
     ]  # fmt: skip
 
 
@@ -340,7 +340,8 @@ def report_summary(folder: Path) -> dict:
 
 def setup_flags(args) -> str:
     """The options that make two runs' rows comparable: the data and how the check is set up."""
-    return f"--data {args.data} --refine {args.refine} --start {args.start} --confirm {args.confirm}"
+    drift = " --mesh-drift" if args.mesh_drift else ""
+    return f"--data {args.data} --refine {args.refine} --start {args.start} --confirm {args.confirm}{drift}"
 
 
 def recorded_rows(args) -> dict[tuple[str, int], dict]:
@@ -432,6 +433,9 @@ def main() -> None:
         type=int,
         default=1,
         help="candidates fitted in full per round (the CLI's default is 2; 1 keeps the recorded tables' setup)",
+    )
+    parser.add_argument(
+        "--mesh-drift", action="store_true", help="the checks' mesh-error correction follows the parameters"
     )
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument(

@@ -52,7 +52,7 @@ def basin(case: str, case_folder: Path, args, comm) -> dict:
     from inference.__main__ import check_inputs
     from inference.cli_parsers import build_parser
     from inference.criticism.calibration import calibrate
-    from inference.criticism.check import CheckTimings, compare, refined_forward, starting_point
+    from inference.criticism.check import CheckTimings, PhaseWork, compare, refined_forward, starting_point
     from inference.criticism.data import Data
     from inference.criticism.diagnosis import check_noise_statement, extend
     from inference.forward import FEForward
@@ -66,7 +66,7 @@ def basin(case: str, case_folder: Path, args, comm) -> dict:
     data = Data.from_points(measurements, noise)
     start, _ = starting_point(forward, data, settings, None, measurements)
     refined = refined_forward(forward, measurements, bounds, (args.mesh_dir, comm, cache), settings)
-    model, data, baseline, _ = compare(forward, refined, data, start, settings, CheckTimings())
+    model, data, baseline, _ = compare(forward, refined, data, start, settings, CheckTimings(), PhaseWork())
     half = config.mesh.membrane_size / 2
     baseline, data, statement = check_noise_statement(model, baseline, data, (half, 2 * config.mesh.h_membrane))
     (effect,) = true_effects(case)
@@ -98,6 +98,7 @@ def main() -> None:
     parser.add_argument("--config", default="check")
     parser.add_argument("--refine", default="edge")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
+    parser.add_argument("--mesh-drift", action="store_true", help="as the checks were run with it")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "criticism_basin.json")
     parser.set_defaults(start="centre", confirm=1)  # the checks this rebuilds: box-centre start, one full fit
     args = parser.parse_args()

@@ -136,6 +136,12 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
         "auto: edge for a quadratic mesh or one refined at the membrane edge, converged for a linear "
         "mesh with edge cells under 1 mm (paper), else uniform",
     )
+    parser.add_argument(
+        "--mesh-drift",
+        action="store_true",
+        help="let the mesh-error correction follow the parameters to first order (both meshes' exact "
+        "sensitivities at the baseline; for candidates that move the model far, e.g. a thicker skin)",
+    )
     parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
     parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
     parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")

@@ -642,6 +642,51 @@ def test_a_candidate_that_reproduces_the_mesh_error_is_not_named_while_that_erro
     assert d.best.effect == "pre_stretch" and d.best.fitted and d.best.mesh_share < 0.03
 
 
+class ExactLinearForward(LinearForward):
+    """The linear world with its exact Jacobian, as the FE model gives it (sensitivities)."""
+
+    exact_jacobian = True
+
+    def evaluate_with_jacobian(self, points, names):
+        columns = self.A[:, self.index(names)].reshape(1, -1, 3, len(names))
+        return [(f, columns) for f in self.evaluate_many(points)]
+
+
+def test_a_drifting_correction_is_the_better_mesh_wherever_the_parameters_go(linear_world, grid_xy):
+    """Two linear "meshes" whose difference depends on the parameters: the correction fixed at
+    x0 misses the better mesh at a far point by exactly the drift; with the drift
+    (``mesh_error_drift``, from both exact Jacobians) the corrected model at amplitude 1 is the
+    better mesh everywhere (exact for linear models), and its Jacobian is the derivative of its
+    own fields (central differences, exact for a model bilinear in the amplitude)."""
+    from inference.criticism.discretisation import AMPLITUDE, CorrectedForward, mesh_error_drift
+
+    rng = np.random.default_rng(8)
+    names, bounds, null = linear_world.names, linear_world.bounds, linear_world.null
+    coarse = ExactLinearForward(linear_world.A, names, bounds, null)
+    fine = ExactLinearForward(linear_world.A * (1 + 0.3 * rng.normal(size=linear_world.A.shape)), names, bounds, null)
+    x0, x1 = rng.normal(size=len(names)), rng.normal(size=len(names))
+    s0 = fine(x0) - coarse(x0)
+    drift = mesh_error_drift(coarse, fine, x0, np.ones((1, len(grid_xy)), bool))
+    stale, drifting = CorrectedForward(coarse, s0), CorrectedForward(coarse, s0, drift, x0)
+    at_x1 = np.append(x1, 1.0)
+    np.testing.assert_allclose(drifting(at_x1), fine(x1), rtol=0, atol=1e-15)
+    miss = stale(at_x1) - fine(x1)
+    np.testing.assert_allclose(miss, -((fine.A - coarse.A) @ (x1 - x0)).reshape(miss.shape), atol=1e-15)
+    assert np.sqrt(np.mean(miss**2)) > 0.1 * np.sqrt(np.mean(s0**2))
+
+    x = np.append(x1, 1.3)
+    wanted = ["mu", "skin_thickness.log_factor", AMPLITUDE]
+    ((fields, jacobian),) = drifting.evaluate_with_jacobian([x], wanted)
+    np.testing.assert_allclose(fields, drifting(x), atol=1e-15)
+    for k, name in enumerate(wanted):
+        step = np.zeros_like(x)
+        step[drifting.names.index(name)] = 1e-3
+        central = (drifting(x + step) - drifting(x - step)) / 2e-3
+        np.testing.assert_allclose(jacobian[..., k], central, rtol=1e-9, atol=1e-14)
+    with pytest.raises(ValueError, match="both"):
+        CorrectedForward(coarse, s0, drift)
+
+
 def test_refinement_halves_every_size_including_the_membrane_edge(small_config):
     from inference.criticism.discretisation import refined_config
     from skinfem.mesh import edge_cell_size

@@ -29,6 +29,7 @@ from inference.criticism.discretisation import (
     describe_mesh,
     error_ratio,
     estimate,
+    mesh_error_drift,
     refined_config,
 )
 from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
@@ -63,6 +64,8 @@ class CheckSettings:
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
         refinement: the better mesh of that estimate, ``"uniform"``, ``"edge"``, ``"quadratic"``
             or ``"converged"`` (see :func:`inference.criticism.discretisation.refined_config`).
+        mesh_drift: the correction follows the parameters to first order (exact sensitivities
+            on both meshes at the baseline, :func:`~inference.criticism.discretisation.mesh_error_drift`).
         start: (5,) skin parameters to start the calibration from (None: the emulator's
             posterior mode if an emulator is given, else the best of a few spread points).
     """
@@ -77,6 +80,7 @@ class CheckSettings:
     spacing: float = 1.0
     discretisation: bool = True
     refinement: str = "uniform"
+    mesh_drift: bool = False
     start: np.ndarray | None = None
 
     def __post_init__(self):
@@ -400,9 +404,11 @@ def compare(
     log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
     meter = WorkMeter(forward.comm)
     fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
+    drift = mesh_error_drift(forward, fine, baseline.x, data.masks) if settings.mesh_drift else None
     disc = estimate(forward, fine, baseline.x, data, settings.refinement)
     work.refined = meter.lap()
-    model, data = CorrectedForward(forward, disc.shift), data.with_model_error(disc.model_error(data.xy, data.masks))
+    model = CorrectedForward(forward, disc.shift, drift, None if drift is None else baseline.x)
+    data = data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
     # the amplitude starts at 1, away from its optimum: the full number of trial steps
     log.info("calibrating the baseline again, corrected by a fitted multiple of the mesh's error")

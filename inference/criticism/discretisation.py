@@ -373,17 +373,28 @@ AMPLITUDE_BOUNDS = (0.0, 4.0)
 
 
 class CorrectedForward(ForwardModel):
-    """``base`` corrected by a multiple ``a`` of a fixed field ``shift`` (n_obs, n_pts, 3):
+    """``base`` corrected by a multiple ``a`` of the field ``shift`` (n_obs, n_pts, 3):
     f_h(x) + a shift, with ``a`` the last parameter (``AMPLITUDE``, in ``AMPLITUDE_BOUNDS``,
     null 1: the better mesh's field). Extrapolation puts the converged field at a = 1 / (1 - r)
     (Richardson's of order p for a refinement: 2^p / (2^p - 1), first order 2, high order 1); a
     better mesh that is itself outside the asymptotic range needs more. Calibrated with the skin
     parameters, ``a`` lets the measurement say how far the mesh is from converged along the
     direction the better mesh showed, so that a candidate effect must explain more than a larger
-    or smaller discretisation error."""
+    or smaller discretisation error.
 
-    def __init__(self, base: ForwardModel, shift: np.ndarray):
-        self.base, self.shift = base, shift
+    The shift is fixed unless ``drift`` is given: (n_obs, n_pts, 3, n_base) its derivative by the
+    base model's parameters at ``at`` (n_base,) (:func:`mesh_error_drift`); the shift then follows
+    the parameters to first order, shift(x) = shift + drift (x - at). A candidate that moves the
+    model far from ``at`` (a 1.5x thicker skin) changes the mesh's own error by more than the
+    noise, and partly against its own signature (docs/criticism.md §23).
+    """
+
+    def __init__(
+        self, base: ForwardModel, shift: np.ndarray, drift: np.ndarray | None = None, at: np.ndarray | None = None
+    ):
+        if (drift is None) != (at is None):
+            raise ValueError("a drifting shift needs both its derivative and the point it was taken at")
+        self.base, self.shift, self.drift, self.at = base, shift, drift, at
         self.names = [*base.names, AMPLITUDE]
         self.bounds = np.vstack([base.bounds, AMPLITUDE_BOUNDS])
         self.null = np.append(base.null, 1.0)
@@ -396,9 +407,13 @@ class CorrectedForward(ForwardModel):
     def exact_jacobian(self) -> bool:
         return self.base.exact_jacobian
 
+    def shift_at(self, x: np.ndarray) -> np.ndarray:
+        """(n_obs, n_pts, 3) the shift at the base model's parameters ``x`` (n_base,)."""
+        return self.shift if self.drift is None else self.shift + self.drift @ (x - self.at)
+
     def evaluate_many(self, points: Sequence[np.ndarray]) -> list[np.ndarray | None]:
         fields = self.base.evaluate_many([x[:-1] for x in points])
-        return [None if f is None else f + x[-1] * self.shift for x, f in zip(points, fields)]
+        return [None if f is None else f + x[-1] * self.shift_at(x[:-1]) for x, f in zip(points, fields)]
 
     def evaluate_with_jacobian(
         self, points: Sequence[np.ndarray], names: Sequence[str]
@@ -411,8 +426,30 @@ class CorrectedForward(ForwardModel):
                 out.append(None)
                 continue
             fields, derivative = result
+            shift = self.shift_at(x[:-1])
+            if self.drift is not None and base_names:
+                derivative = derivative + x[-1] * self.drift[..., self.base.index(base_names)]
             columns = iter(np.moveaxis(derivative, -1, 0))
             if names:
-                derivative = np.stack([self.shift if n == AMPLITUDE else next(columns) for n in names], -1)
-            out.append((fields + x[-1] * self.shift, derivative))
+                derivative = np.stack([shift if n == AMPLITUDE else next(columns) for n in names], -1)
+            out.append((fields + x[-1] * shift, derivative))
         return out
+
+
+def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """(n_obs, n_pts, 3, n) the derivative of the two-mesh shift f_fine - f_coarse by every
+    parameter of ``coarse`` at x: both meshes' exact Jacobians (forward sensitivities, one run
+    each), zero off ``masks`` (n_obs, n_pts). Their fields serve :func:`estimate` at x without
+    another run.
+
+    Raises:
+        ValueError: the better mesh does not converge at x.
+    """
+    names = list(coarse.names)
+    (fine_result,) = fine.evaluate_with_jacobian([x], names)
+    if fine_result is None:
+        raise ValueError("the discretisation estimate's better mesh does not converge at the calibrated parameters")
+    (coarse_result,) = coarse.evaluate_with_jacobian([x], names)
+    if coarse_result is None:
+        raise ValueError("the check's mesh does not converge at its own calibrated parameters")
+    return np.where(masks[..., None, None], fine_result[1] - coarse_result[1], 0.0)
