@@ -1,8 +1,10 @@
 """Does the check mesh's own error move with the parameters enough to hide an effect?
 
-    mpirun -n 2 python benchmarks/mesh_error_drift.py [--config check] [--refine edge]
-                                                     [--cases skin_thickness muscle_stiffness pre_stretch]
-                                                     [--out out/mesh_error_drift] [--results FILE]
+    python benchmarks/mesh_error_drift.py [--config check] [--refine edge]
+                                          [--cases skin_thickness muscle_stiffness pre_stretch]
+                                          [--out out/mesh_error_drift] [--results FILE]
+
+(one rank on a 24 GB machine: the refined mesh's run with derivatives takes 12 GB per rank)
 
 The check corrects its model by a fitted multiple ``a`` of one two-mesh shift s0 = R(x0) - C(x0)
 (``CorrectedForward``: C the check mesh, R its refined mesh), estimated at the baseline x0. When

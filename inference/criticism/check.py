@@ -406,6 +406,7 @@ def compare(
     fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
     drift = mesh_error_drift(forward, fine, baseline.x, data.masks) if settings.mesh_drift else None
     disc = estimate(forward, fine, baseline.x, data, settings.refinement)
+    disc.drifts = drift is not None
     work.refined = meter.lap()
     model = CorrectedForward(forward, disc.shift, drift, None if drift is None else baseline.x)
     data = data.with_model_error(disc.model_error(data.xy, data.masks))

@@ -210,6 +210,7 @@ class DiscretisationError:
             (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
         quadratic: the check's mesh has quadratic elements and two or more skin layers already
             (its advice is then only a finer edge).
+        drifts: the correction follows the parameters to first order (:func:`mesh_error_drift`).
     """
 
     mesh: str
@@ -226,6 +227,7 @@ class DiscretisationError:
     amplitude: float | None = None
     amplitude_sd: float | None = None
     quadratic: bool = False
+    drifts: bool = False
 
     @property
     def remaining_factor(self) -> float:
@@ -287,7 +289,8 @@ class DiscretisationError:
             f"Discretisation error of the check's mesh ({self.mesh}) at the calibrated parameters: "
             f"{self.relative:.1%} of the field, {self.sigma:.1f} sigma RMS "
             f"(two-mesh estimate with {self.refined}); "
-            f"the model is corrected by a fitted multiple of the shift and its remaining error "
+            f"the model is corrected by a fitted multiple of the shift"
+            f"{' (which follows the parameters to first order)' if self.drifts else ''} and its remaining error "
             f"({self.remaining_sigma:.1f} sigma, {self.basis}) is carried next to the noise."
         )
         if self.amplitude is not None:

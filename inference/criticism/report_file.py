@@ -68,6 +68,7 @@ def report_dict(result: CheckResult) -> dict:
             "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
             "amplitude": result.discretisation.amplitude,
             "amplitude_sd": result.discretisation.amplitude_sd,
+            "correction_follows_the_parameters": result.discretisation.drifts,
             "carried_correlation_length_mm": result.data.model_error.length,
             "carried_nugget": result.data.model_error.nugget,
         },
