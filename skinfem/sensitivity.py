@@ -69,6 +69,7 @@ class DisplacementSensitivity:
         self._ksp: PETSc.KSP | None = None  # its own LU, made only when needed
         self._rhs = dolfinx.fem.petsc.create_vector(model.V)
         self.factorisations = 0  # of its own (the kept one did not serve)
+        self.krylov_iterations: list[int] = []  # of each solve on the kept factorisation
 
     def _form(self, name: str):
         """The compiled form dR/dp of parameter ``name`` (cached)."""
@@ -118,6 +119,7 @@ class DisplacementSensitivity:
         """GMRES on the tangent, preconditioned by the kept factorisation; whether it converged."""
         du.x.petsc_vec.set(0.0)
         self._krylov.solve(self._rhs, du.x.petsc_vec)
+        self.krylov_iterations.append(self._krylov.getIterationNumber())
         return self._krylov.getConvergedReason() > 0
 
     def _factorise(self) -> None:
