@@ -51,20 +51,21 @@ def drift_numbers(whiten, jacobian: np.ndarray, c0, r0, c1, r1, linear_drift) ->
     """Whitened squared norms [chi^2 units] of the shift, signature and drift of one case
     (module doc), and what the first-order drift ``linear_drift`` (the same shape as the fields)
     misses of the drift; ``whiten`` maps an (n_obs, n_pts, 3) field difference to (n,)."""
-    s0, g, d = whiten(r0 - c0), whiten(c1 - c0), whiten((r1 - c1) - (r0 - c0))
+    s0, s1, g = whiten(r0 - c0), whiten(r1 - c1), whiten(c1 - c0)
+    d = s1 - s0  # the whitening is linear
     miss = d - whiten(linear_drift)
     skin = np.stack([whiten(jacobian[..., k]) for k in range(jacobian.shape[-1])], -1)
     p = projector_off(np.column_stack([skin, s0]))
-    a_best = float(whiten(r1 - c1) @ s0 / (s0 @ s0))
+    a_best = float(s1 @ s0 / (s0 @ s0))
 
     def sq(v):
         return float(v @ v)
 
     return {
         "shift_at_x0": sq(s0),
-        "shift_at_x1": sq(whiten(r1 - c1)),
+        "shift_at_x1": sq(s1),
         "shift_at_x1_best_multiple_of_x0s": a_best,
-        "shift_at_x1_beyond_that_multiple": sq(whiten(r1 - c1) - a_best * s0),
+        "shift_at_x1_beyond_that_multiple": sq(s1 - a_best * s0),
         "signature": sq(g),
         "signature_beyond_skin": sq(p @ g),
         "drift_beyond_skin": sq(p @ d),
