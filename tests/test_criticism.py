@@ -685,6 +685,10 @@ def test_a_drifting_correction_is_the_better_mesh_wherever_the_parameters_go(lin
         np.testing.assert_allclose(jacobian[..., k], central, rtol=1e-9, atol=1e-14)
     with pytest.raises(ValueError, match="both"):
         CorrectedForward(coarse, s0, drift)
+    from inference.criticism.check import CheckSettings
+
+    with pytest.raises(ValueError, match="--mesh-drift needs the discretisation estimate"):
+        CheckSettings(mesh_drift=True, discretisation=False)
 
 
 def test_refinement_halves_every_size_including_the_membrane_edge(small_config):

@@ -90,6 +90,8 @@ class CheckSettings:
             raise ValueError("--add lists an effect twice")
         if self.refinement not in REFINEMENTS:
             raise ValueError(f"unknown refinement {self.refinement!r}; choose one of {', '.join(REFINEMENTS)}")
+        if self.mesh_drift and not self.discretisation:
+            raise ValueError("--mesh-drift needs the discretisation estimate: drop --no-discretisation")
         if not self.spacing > 0:
             raise ValueError(f"the point spacing must be > 0 mm, got {self.spacing}")
 
