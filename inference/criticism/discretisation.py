@@ -84,6 +84,7 @@ REFERENCES = {
 }
 REFINEMENTS = ("uniform", "edge", *REFERENCES)
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
+BETTER_MESH_FAILS = "the discretisation estimate's better mesh does not converge at the calibrated parameters"
 
 
 def richardson_limit(coarser: np.ndarray, finer: np.ndarray, order: float) -> np.ndarray:
@@ -349,7 +350,7 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data, refi
     start = time.perf_counter()
     f_coarse, f_fine = coarse(x), fine(x)
     if f_fine is None:
-        raise ValueError("the discretisation estimate's better mesh does not converge at the calibrated parameters")
+        raise ValueError(BETTER_MESH_FAILS)
     shift = np.where(data.masks[..., None], f_fine - f_coarse, 0.0)
     m = data.masks
     measured_rms = float(np.sqrt(np.mean(data.fields[m] ** 2)))
@@ -451,7 +452,7 @@ def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, ma
     names = list(coarse.names)
     (fine_result,) = fine.evaluate_with_jacobian([x], names)
     if fine_result is None:
-        raise ValueError("the discretisation estimate's better mesh does not converge at the calibrated parameters")
+        raise ValueError(BETTER_MESH_FAILS)
     (coarse_result,) = coarse.evaluate_with_jacobian([x], names)
     if coarse_result is None:
         raise ValueError("the check's mesh does not converge at its own calibrated parameters")
