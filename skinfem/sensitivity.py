@@ -11,13 +11,11 @@ with respect to u (``ufl.derivative``), so the forms are exact and compiled once
 angle theta [deg] enters through a0 = (cos theta, sin theta, 0): its derivative is the
 directional derivative along da0/dtheta = (-sin theta, cos theta, 0) pi/180.
 
-One tangent assembly serves all parameters of a state; each parameter costs one assembly of
-dR/dp and a few triangular solves, instead of one full nonlinear simulation per parameter for
-a finite difference. The solves are GMRES (preconditioned from the right, so that it measures
-the true residual) preconditioned by the LU factorisation the Newton solve keeps (of a tangent
-of this load increment): no second factorisation, whose memory doubled the peak of a run with
-derivatives (12 GB per rank on the `check` preset's edge refinement, docs/criticism.md §23).
-Only where that GMRES does not converge, or no factorisation is kept, is the tangent factorised.
+One tangent assembly and one LU factorisation serve all parameters of a state; each
+parameter costs one assembly of dR/dp and one pair of triangular solves, instead of one full
+nonlinear simulation per parameter for a finite difference. (GMRES preconditioned by the
+factorisation the Newton solve keeps was measured twice and is slower: ~45 iterations per
+parameter, without a lower peak memory; docs/criticism.md §4.)
 """
 
 from __future__ import annotations
@@ -61,15 +59,12 @@ class DisplacementSensitivity:
         self._constants.update(model.effect_constants)
         self._forms: dict[str, dolfinx.fem.Form] = {}
         self._K = dolfinx.fem.petsc.create_matrix(model.problem.J)
-        self._krylov = PETSc.KSP().create(mesh.comm)
-        self._krylov.setType("gmres")
-        self._krylov.setPCSide(PETSc.PC.Side.RIGHT)
-        self._krylov.setTolerances(rtol=KRYLOV_RTOL, atol=0.0, max_it=KRYLOV_MAX_IT)
-        self._krylov.getPC().setType("python")
-        self._ksp: PETSc.KSP | None = None  # its own LU, made only when needed
+        self._ksp = PETSc.KSP().create(mesh.comm)
+        self._ksp.setType("preonly")
+        pc = self._ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
         self._rhs = dolfinx.fem.petsc.create_vector(model.V)
-        self.factorisations = 0  # of its own (the kept one did not serve)
-        self.krylov_iterations: list[int] = []  # of each solve on the kept factorisation
 
     def _form(self, name: str):
         """The compiled form dR/dp of parameter ``name`` (cached)."""
@@ -91,11 +86,7 @@ class DisplacementSensitivity:
         self._K.zeroEntries()
         dolfinx.fem.petsc.assemble_matrix(self._K, model.problem.J, bcs=model.bcs)
         self._K.assemble()
-        factor = kept_factorisation(model)
-        if factor is not None:
-            self._krylov.setOperators(self._K)
-            self._krylov.getPC().setPythonContext(FactorPreconditioner(factor))
-        fresh = False  # whether its own LU holds this tangent
+        self._ksp.setOperators(self._K)  # a new factorisation for the new tangent
         out = []
         for form in forms:
             with self._rhs.localForm() as local:
@@ -106,56 +97,7 @@ class DisplacementSensitivity:
             for bc in model.bcs:
                 bc.set(self._rhs.array_w, alpha=0.0)
             du = dolfinx.fem.Function(model.V)
-            if factor is None or not self._krylov_solve(du):
-                if not fresh:
-                    self._factorise()
-                    fresh = True
-                self._ksp.solve(self._rhs, du.x.petsc_vec)
+            self._ksp.solve(self._rhs, du.x.petsc_vec)
             du.x.scatter_forward()
             out.append(du)
         return out
-
-    def _krylov_solve(self, du) -> bool:
-        """GMRES on the tangent, preconditioned by the kept factorisation; whether it converged."""
-        du.x.petsc_vec.set(0.0)
-        self._krylov.solve(self._rhs, du.x.petsc_vec)
-        self.krylov_iterations.append(self._krylov.getIterationNumber())
-        return self._krylov.getConvergedReason() > 0
-
-    def _factorise(self) -> None:
-        """Its own MUMPS LU of the current tangent (created on first use)."""
-        if self._ksp is None:
-            self._ksp = PETSc.KSP().create(self.model.mesh.comm)
-            self._ksp.setType("preonly")
-            pc = self._ksp.getPC()
-            pc.setType("lu")
-            pc.setFactorSolverType("mumps")
-        self._ksp.setOperators(self._K)  # a new factorisation for the new tangent
-        self.factorisations += 1
-
-
-KRYLOV_RTOL = 1e-10  # of the sensitivity solves' true residual, relative to dR/dp
-KRYLOV_MAX_IT = 60  # beyond this a kept factorisation is too stale: factorise the tangent
-
-
-class FactorPreconditioner:
-    """petsc4py ``python`` preconditioner: y = F^-1 x with F an LU factorisation kept elsewhere."""
-
-    def __init__(self, factor: PETSc.Mat):
-        self.factor = factor
-
-    def apply(self, pc: PETSc.PC, x: PETSc.Vec, y: PETSc.Vec) -> None:
-        self.factor.solve(x, y)
-
-
-def kept_factorisation(model) -> PETSc.Mat | None:
-    """The LU factor the model's Newton solve holds (its GMRES preconditioner), or None when it
-    holds none (not factorised yet, or freed, e.g. by pseudo-time continuation)."""
-    pc = model.problem.solver.getKSP().getPC()
-    if pc.getType() != "lu":
-        return None
-    try:
-        factor = pc.getFactorMatrix()
-    except PETSc.Error:
-        return None
-    return factor if factor.isAssembled() else None
