@@ -1041,7 +1041,7 @@ def test_a_targeted_test_finds_an_effect_the_omnibus_test_misses_and_stays_calib
     d = diagnose(linear_world, cal, data, list(EFFECTS), 10.0, 4.0, confirm=1, targeted=True, max_iterations=20)
     assert not d.metrics.structured and d.best.effect == "bonding" and d.best.fitted
     assert d.best.estimate["bonding.compliance"] == pytest.approx(0.03, abs=0.01)
-    assert "not in the direction of a candidate" in d.text and "Add it with --add bonding" in d.text
+    assert "but not along one candidate's signature" in d.text and "Add it with --add bonding" in d.text
     alarms = 0
     for seed in range(40):
         data, cal = linear_data(linear_world, grid_xy, {}, seed=100 + seed)

@@ -442,7 +442,7 @@ def verdict(
     else:
         tests = ", ".join(f"{s.effect} p = {s.p_value:.1e}" for s in found)
         text = (
-            f"{consistent} overall, but not in the direction of a candidate: its own score test rejects "
+            f"{consistent} overall, but not along one candidate's signature: its own score test rejects "
             f"'no effect' ({tests}; {len(scores)} candidates tested, Bonferroni); " + where
         )
     best = next((s for s in scores if s.explains), None)
