@@ -423,28 +423,9 @@ def verdict(
     with how many times its estimate the mesh's error would have to be to explain the residual
     (``larger``, :func:`larger_model_error`); a candidate that this larger error explains as well
     is said to be not enough, with that comparison."""
-    consistent = (
-        f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
-        f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f})"
-    )
     if not metrics.structured and not found:
-        return consistent + ": no missing effect is needed."
-    worst = regions[0]
-    where = (
-        f"the worst region: {worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error "
-        f"alone give 1), peaking {hotspot.summary()}."
-    )
-    if metrics.structured:
-        text = (
-            f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
-            f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); " + where
-        )
-    else:
-        tests = ", ".join(f"{s.effect} p = {s.p_value:.1e}" for s in found)
-        text = (
-            f"{consistent} overall, but not along one candidate's signature: its own score test rejects "
-            f"'no effect' ({tests}; {len(scores)} candidates tested, Bonferroni); " + where
-        )
+        return consistent_text(metrics) + ": no missing effect is needed."
+    text = opening(metrics, regions[0], hotspot, found, len(scores))
     best = next((s for s in scores if s.explains), None)
     if best is None and not metrics.structured:
         text += (
@@ -456,6 +437,35 @@ def verdict(
     else:
         text += named(best, scores, added)
     return text + mesh_like_text(scores)
+
+
+def consistent_text(metrics: ResidualMetrics) -> str:
+    return (
+        f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
+        f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f})"
+    )
+
+
+def opening(
+    metrics: ResidualMetrics, worst: RegionResidual, hotspot: Hotspot, found: Sequence[CandidateScore], tested: int
+) -> str:
+    """The verdict's first sentence when there is something to explain: the omnibus test's
+    structure, or the targeted tests that reject "no effect" (``found`` of ``tested``), and where
+    the residual is worst."""
+    where = (
+        f"the worst region: {worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error "
+        f"alone give 1), peaking {hotspot.summary()}."
+    )
+    if metrics.structured:
+        return (
+            f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
+            f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); " + where
+        )
+    tests = ", ".join(f"{s.effect} p = {s.p_value:.1e}" for s in found)
+    return (
+        f"{consistent_text(metrics)} overall, but not along one candidate's signature: its own score test "
+        f"rejects 'no effect' ({tests}; {tested} candidates tested, Bonferroni); " + where
+    )
 
 
 def unexplained(scores: list[CandidateScore], carried_sigma: float, larger: LargerModelError | None) -> str:
