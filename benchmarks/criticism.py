@@ -207,7 +207,6 @@ def check_argv(files, folder: Path, add: list[str], args) -> list[str]:
         "--spacing", "2",
         "--mesh-dir", str(args.mesh_dir), "--refine", args.refine, "--resume", *given,
         *(["--add", *add] if add else []), *(["--mesh-drift"] if args.mesh_drift else []),
-        *(["--targeted"] if args.targeted else []),
     ]  # fmt: skip
 
 
@@ -310,7 +309,6 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
 
 PHASES = ("compare", "refined", "diagnose", "add", "next_round")
 BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitted", "mesh_share", "mesh_like")
-# every candidate's targeted test, to measure a gate on it against controls
 CANDIDATE_TEST = ("effect", "statistic", "dof", "p_value", "delta_bic", "fitted", "mesh_share", "mesh_like")
 
 
@@ -322,7 +320,7 @@ def mesh_shares(diagnosis: ReportDiagnosis) -> dict[str, float | None]:
 def report_summary(folder: Path) -> dict:
     """From the case's (last) report.json: seconds, FE runs and solver work of each phase, the baseline's
     chi^2/dof and posterior-predictive p, its best candidate, every candidate's share of the mesh's own
-    error and targeted test, and the competing larger model error."""
+    error and targeted (score) test, and the competing larger model error."""
     from inference.criticism.report_file import read_report
 
     report = read_report(folder / "report" / "report.json")
@@ -345,8 +343,7 @@ def report_summary(folder: Path) -> dict:
 def setup_flags(args) -> str:
     """The options that make two runs' rows comparable: the data and how the check is set up."""
     drift = " --mesh-drift" if args.mesh_drift else ""
-    targeted = " --targeted" if args.targeted else ""
-    return f"--data {args.data} --refine {args.refine} --start {args.start} --confirm {args.confirm}{drift}{targeted}"
+    return f"--data {args.data} --refine {args.refine} --start {args.start} --confirm {args.confirm}{drift}"
 
 
 def recorded_rows(args) -> dict[tuple[str, int], dict]:
@@ -441,9 +438,6 @@ def main() -> None:
     )
     parser.add_argument(
         "--mesh-drift", action="store_true", help="the checks' mesh-error correction follows the parameters"
-    )
-    parser.add_argument(
-        "--targeted", action="store_true", help="the checks diagnose a candidate whose own score test rejects"
     )
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument(

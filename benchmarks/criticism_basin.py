@@ -99,7 +99,6 @@ def main() -> None:
     parser.add_argument("--refine", default="edge")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
     parser.add_argument("--mesh-drift", action="store_true", help="as the checks were run with it")
-    parser.add_argument("--targeted", action="store_true", help="as the checks were run with it")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "criticism_basin.json")
     parser.set_defaults(start="centre", confirm=1)  # the checks this rebuilds: box-centre start, one full fit
     args = parser.parse_args()

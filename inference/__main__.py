@@ -295,7 +295,6 @@ def check_inputs(args):
         discretisation=not args.no_discretisation,
         refinement=default_refinement(config) if args.refine == "auto" else args.refine,
         mesh_drift=args.mesh_drift,
-        targeted=args.targeted,
     )
     bounds = emulator.param_bounds if emulator is not None else config.sweep.box
     if args.start is not None:

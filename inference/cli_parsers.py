@@ -142,12 +142,6 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
         help="let the mesh-error correction follow the parameters to first order (both meshes' exact "
         "sensitivities at the baseline; for candidates that move the model far, e.g. a thicker skin)",
     )
-    parser.add_argument(
-        "--targeted",
-        action="store_true",
-        help="also diagnose a residual the omnibus test finds consistent when one candidate's own score "
-        "test rejects 'no effect' (Bonferroni over the candidates; candidates resembling the mesh's error excluded)",
-    )
     parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
     parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
     parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")

@@ -88,7 +88,6 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
         start="centre",
         confirm=1,
         mesh_drift=False,
-        targeted=False,
         results=tmp_path / "r.json",
         keep_recorded=True,
     )
@@ -106,8 +105,6 @@ def test_recorded_rows_are_kept_and_another_setups_file_is_refused(tmp_path):
         bench.recorded_rows(Namespace(**{**vars(args), "confirm": 2}))
     with pytest.raises(SystemExit, match="another setup"):
         bench.recorded_rows(Namespace(**{**vars(args), "mesh_drift": True}))
-    with pytest.raises(SystemExit, match="another setup"):
-        bench.recorded_rows(Namespace(**{**vars(args), "targeted": True}))
     for malformed in ("{not json", json.dumps({"command": command}), json.dumps({**earlier, "rows": [1]})):
         args.results.write_text(malformed)
         with pytest.raises(SystemExit, match="not a results file"):
@@ -123,13 +120,7 @@ def test_a_benchmark_check_is_a_valid_skinid_check_command_started_at_the_box_ce
 
     bench = load_benchmark()
     args = argparse.Namespace(
-        config="check",
-        refine="edge",
-        start="centre",
-        confirm=2,
-        mesh_dir=tmp_path / "meshes",
-        mesh_drift=False,
-        targeted=False,
+        config="check", refine="edge", start="centre", confirm=2, mesh_dir=tmp_path / "meshes", mesh_drift=False
     )
     files = [tmp_path / "m_0.csv", tmp_path / "m_1.csv"]
     argv = bench.check_argv(files, tmp_path / "none_0", ["pre_stretch"], args)
@@ -139,7 +130,7 @@ def test_a_benchmark_check_is_a_valid_skinid_check_command_started_at_the_box_ce
     assert parsed.start == load_config("check").sweep.box.mean(axis=1).tolist()
     assert (parsed.refine, parsed.spacing, parsed.increments, parsed.add) == ("edge", 2.0, 2, ["pre_stretch"])
     assert (parsed.noise_length, parsed.noise_nugget, parsed.resume, parsed.confirm) == (2.0, 0.3, True, 2)
-    assert parsed.mesh_drift is False and parsed.targeted is False
-    spread = argparse.Namespace(**{**vars(args), "start": "spread", "mesh_drift": True, "targeted": True})
+    assert parsed.mesh_drift is False
+    spread = argparse.Namespace(**{**vars(args), "start": "spread", "mesh_drift": True})
     parsed = build_parser("skinid check").parse_args(bench.check_argv(files, tmp_path, [], spread)[1:])
-    assert parsed.start is None and parsed.mesh_drift and parsed.targeted
+    assert parsed.start is None and parsed.mesh_drift

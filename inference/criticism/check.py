@@ -66,9 +66,6 @@ class CheckSettings:
             or ``"converged"`` (see :func:`inference.criticism.discretisation.refined_config`).
         mesh_drift: the correction follows the parameters to first order (exact sensitivities
             on both meshes at the baseline, :func:`~inference.criticism.discretisation.mesh_error_drift`).
-        targeted: a residual the omnibus test finds consistent is still diagnosed when one
-            candidate's own score test rejects "no effect" (Bonferroni over the candidates;
-            :func:`~inference.criticism.diagnosis.targeted_finds`).
         start: (5,) skin parameters to start the calibration from (None: the emulator's
             posterior mode if an emulator is given, else the best of a few spread points).
     """
@@ -84,7 +81,6 @@ class CheckSettings:
     discretisation: bool = True
     refinement: str = "uniform"
     mesh_drift: bool = False
-    targeted: bool = False
     start: np.ndarray | None = None
 
     def __post_init__(self):
@@ -282,7 +278,6 @@ def run_check(
         settings.confirm,
         carried_sigma=carried,
         mesh_shift=shift,
-        targeted=settings.targeted,
         max_iterations=settings.max_iterations,
     )  # also the baseline's metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
@@ -368,7 +363,6 @@ def _next_round(
         carried_sigma=mesh_error[0],
         added=settings.add,
         mesh_shift=mesh_error[1],
-        targeted=settings.targeted,
         max_iterations=settings.max_iterations,
     )
     timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs

@@ -15,7 +15,6 @@ from inference.criticism.calibration import Calibration, calibrate
 from inference.criticism.data import Data, stack
 from inference.criticism.discretisation import AMPLITUDE, MESH_RESOLVED_SIGMA
 from inference.criticism.metrics import (
-    ALPHA,
     Hotspot,
     RegionResidual,
     ResidualMetrics,
@@ -157,11 +156,9 @@ class CandidateScore:
     def summary(self) -> str:
         est = ", ".join(f"{k.split('.')[-1]} = {v:.3g}" for k, v in self.estimate.items())
         how = "fitted" if self.fitted else "linearised"
-        # a residual within the noise has no excess to share (a targeted find, a control)
-        share = f"explains {self.share_explained:.0%} of the excess residual, " if self.share_explained > 0 else ""
         return (
-            f"{self.effect} (Delta BIC = {self.delta_bic:+.1f}, {share}{self.confounding:.0%} confounded with "
-            f"the skin parameters; {how} estimate {est})"
+            f"{self.effect} (Delta BIC = {self.delta_bic:+.1f}, explains {self.share_explained:.0%} of the "
+            f"excess residual, {self.confounding:.0%} confounded with the skin parameters; {how} estimate {est})"
         )
 
 
@@ -326,13 +323,6 @@ class Diagnosis:
         return next((s for s in self.scores if s.explains), None)
 
 
-def targeted_finds(testable: list[CandidateScore], tested: int) -> list[CandidateScore]:
-    """The candidates whose own score test rejects "no effect" at ``ALPHA``, Bonferroni-corrected
-    over the ``tested`` candidates (strongest first). ``testable``: those that do not resemble
-    the mesh's own error while it is unresolved, whose tests it would inflate."""
-    return [s for s in testable if s.p_value * tested < ALPHA]
-
-
 def diagnose(
     forward: ForwardModel,
     cal: Calibration,
@@ -344,7 +334,6 @@ def diagnose(
     carried_sigma: float = 0.0,
     added: Sequence[str] = (),
     mesh_shift: np.ndarray | None = None,
-    targeted: bool = False,
     **fit_kwargs,
 ) -> Diagnosis:
     """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
@@ -361,9 +350,6 @@ def diagnose(
     ``mesh_shift``: the two-mesh shift of the carried error's estimate; a candidate that
     reproduces ``MESH_LIKE`` of it (:func:`mesh_shares`) is neither fitted nor named while the
     carried error exceeds half the noise (it could be the mesh's own error).
-    ``targeted``: a residual the omnibus test finds consistent is still diagnosed when a
-    candidate's own score test rejects "no effect" (:func:`targeted_finds`); those candidates
-    (the ``confirm`` strongest) are fitted and may be named, without the share of an excess.
     """
     start, runs0 = time.perf_counter(), forward.runs
     metrics = residual_metrics(cal, data)
@@ -376,15 +362,12 @@ def diagnose(
         for s in scores:
             s.mesh_share = shares[s.effect]
     unresolved = carried_sigma > MESH_RESOLVED_SIGMA
-    testable = [s for s in scores if not (unresolved and s.resembles_mesh_error())]
-    found = targeted_finds(testable, len(scores)) if targeted and not metrics.structured else []
     fits: dict[str, Calibration] = {}
-    if metrics.structured or found:
+    if metrics.structured:
         excess, n = excess_chi2(cal, data), metrics.n_data
+        testable = [s for s in scores if not (unresolved and s.resembles_mesh_error())]
         strong = [s for s in testable if s.delta_bic > STRONG_EVIDENCE][:confirm]
         blind = [s for s in testable if confirm and s.confounding > CONFOUNDED and s not in strong]
-        if not metrics.structured:
-            strong, blind = found[:confirm], []
         for s in strong + blind:
             fit = fits[s.effect] = extend(forward, cal, data, s.effect, **fit_kwargs)
             drop = cal.chi2 - fit.chi2
@@ -393,13 +376,16 @@ def diagnose(
             s.estimate = {q: float(fit.x[forward.names.index(q)]) for q in s.parameters}
             s.fitted = True
         scores.sort(key=lambda s: -s.delta_bic)
-    larger = larger_model_error(cal, data) if metrics.structured or found else None
+    larger = larger_model_error(cal, data) if metrics.structured else None
     for s in scores:
-        shown = s.share_explained >= MIN_SHARE if metrics.structured else s in found
-        enough = shown and s.delta_bic > max(STRONG_EVIDENCE, larger.delta_bic if larger else -math.inf)
+        enough = (
+            metrics.structured
+            and s.delta_bic > max(STRONG_EVIDENCE, larger.delta_bic if larger else -math.inf)
+            and s.share_explained >= MIN_SHARE
+        )
         s.mesh_like = enough and unresolved and s.resembles_mesh_error()
         s.explains = enough and not s.mesh_like
-    text = verdict(metrics, scores, regions, hotspot, carried_sigma, added, larger, found)
+    text = verdict(metrics, scores, regions, hotspot, carried_sigma, added, larger)
     runs, seconds = forward.runs - runs0, time.perf_counter() - start
     return Diagnosis(metrics, regions, hotspot, scores, fits, text, runs, seconds, larger)
 
@@ -412,60 +398,33 @@ def verdict(
     carried_sigma: float = 0.0,
     added: Sequence[str] = (),
     larger: LargerModelError | None = None,
-    found: Sequence[CandidateScore] = (),
 ) -> str:
     """One paragraph: is the residual noise, where is it not, which candidate explains it.
-    ``found``: candidates whose targeted test rejects "no effect" in a residual the omnibus
-    test finds consistent (:func:`targeted_finds`).
 
     A carried discretisation error above half the noise (``carried_sigma`` > 0.5, RMS in noise
     sd) turns "something outside the registry is missing" into "rerun on a finer mesh first",
     with how many times its estimate the mesh's error would have to be to explain the residual
     (``larger``, :func:`larger_model_error`); a candidate that this larger error explains as well
     is said to be not enough, with that comparison."""
-    if not metrics.structured and not found:
-        return consistent_text(metrics) + ": no missing effect is needed."
-    text = opening(metrics, regions[0], hotspot, found, len(scores))
-    best = next((s for s in scores if s.explains), None)
-    if best is None and not metrics.structured:
-        text += (
-            f" {found[0].summary()} is not strong enough (Delta BIC above {STRONG_EVIDENCE:g} and above "
-            "a larger mesh error's): no missing effect is named."
+    if not metrics.structured:
+        return (
+            f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
+            f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f}): "
+            "no missing effect is needed."
         )
-    elif best is None:
+    worst = regions[0]
+    text = (
+        f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
+        f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); the worst region: "
+        f"{worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error alone give 1), "
+        f"peaking {hotspot.summary()}."
+    )
+    best = next((s for s in scores if s.explains), None)
+    if best is None:
         text += " No candidate explains the residual." + unexplained(scores, carried_sigma, larger)
     else:
         text += named(best, scores, added)
     return text + mesh_like_text(scores)
-
-
-def consistent_text(metrics: ResidualMetrics) -> str:
-    return (
-        f"The residual is consistent with the noise (chi^2/dof = {metrics.chi2_per_dof:.2f}, "
-        f"posterior-predictive p = {metrics.ppc_p:.2f}, Moran's I z = {metrics.moran_z:.1f})"
-    )
-
-
-def opening(
-    metrics: ResidualMetrics, worst: RegionResidual, hotspot: Hotspot, found: Sequence[CandidateScore], tested: int
-) -> str:
-    """The verdict's first sentence when there is something to explain: the omnibus test's
-    structure, or the targeted tests that reject "no effect" (``found`` of ``tested``), and where
-    the residual is worst."""
-    where = (
-        f"the worst region: {worst.region} ({worst.rms_sigma:.1f} sigma RMS; noise and carried model error "
-        f"alone give 1), peaking {hotspot.summary()}."
-    )
-    if metrics.structured:
-        return (
-            f"The residual is structured (chi^2/dof = {metrics.chi2_per_dof:.2f}, posterior-predictive "
-            f"p = {metrics.ppc_p:.3f}, Moran's I z = {metrics.moran_z:.1f}); " + where
-        )
-    tests = ", ".join(f"{s.effect} p = {s.p_value:.1e}" for s in found)
-    return (
-        f"{consistent_text(metrics)} overall, but not along one candidate's signature: its own score test "
-        f"rejects 'no effect' ({tests}; {tested} candidates tested, Bonferroni); " + where
-    )
 
 
 def unexplained(scores: list[CandidateScore], carried_sigma: float, larger: LargerModelError | None) -> str:
