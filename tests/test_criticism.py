@@ -923,7 +923,7 @@ def linear_check(world, data, baseline, added):
     (cal, diagnosis), (last, next_round) = baseline, added
     disc = DiscretisationError(
         mesh="linear", refined="none", radius=2.0, h_edge=2.0, shift=np.zeros_like(data.fields),
-        order=1.0, ratio=0.5, basis="order 1 assumed", relative=0.01, sigma=0.7, seconds=1.0,
+        order=1.0, ratio=0.5, basis="order 1 assumed", relative=0.01, sigma=0.7,
         amplitude=1.2, amplitude_sd=0.3,
     )  # fmt: skip
     xy = data.xy[0]

@@ -34,7 +34,6 @@ the noise (error proportional to that size to the power p).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -206,7 +205,6 @@ class DiscretisationError:
         relative: RMS of the check mesh's error (|shift| / (1 - ratio)) / RMS of the measured
             field.
         sigma: RMS of the check mesh's error in noise sd units.
-        seconds: wall time of the better mesh's simulation(s).
         amplitude, amplitude_sd: the multiple of the shift the calibrated, corrected model uses
             (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
         quadratic: the check's mesh has quadratic elements and two or more skin layers already
@@ -224,7 +222,6 @@ class DiscretisationError:
     basis: str
     relative: float
     sigma: float
-    seconds: float
     amplitude: float | None = None
     amplitude_sd: float | None = None
     quadratic: bool = False
@@ -347,7 +344,6 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data, refi
     Raises:
         ValueError: the refined model does not converge at x.
     """
-    start = time.perf_counter()
     f_coarse, f_fine = coarse(x), fine(x)
     if f_fine is None:
         raise ValueError(BETTER_MESH_FAILS)
@@ -367,7 +363,6 @@ def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data, refi
         basis=basis,
         relative=float(np.sqrt(np.mean(error**2)) / measured_rms),
         sigma=float(np.sqrt(np.mean((error / data.noise.sd) ** 2))),
-        seconds=time.perf_counter() - start,
         quadratic=resolved_through_thickness(coarse.config),
     )
 
