@@ -4,7 +4,8 @@
                                           [--cases skin_thickness muscle_stiffness pre_stretch]
                                           [--out out/mesh_error_drift] [--results FILE]
 
-(one rank on a 24 GB machine: the refined mesh's run with derivatives takes 12 GB per rank)
+(one rank on a 24 GB machine: the refined mesh's run with derivatives takes 9.4 GB on one rank
+and was killed at 12.6 GB on one of two ranks)
 
 The check corrects its model by a fitted multiple ``a`` of one two-mesh shift s0 = R(x0) - C(x0)
 (``CorrectedForward``: C the check mesh, R its refined mesh), estimated at the baseline x0. When
