@@ -312,9 +312,10 @@ class FEForward(ForwardModel):
 
     def holds(self, x: np.ndarray) -> bool:
         """Whether the fields at ``x`` are known without a simulation: in memory (also from a run
-        with derivatives) or in ``cache_dir`` (then read into memory, not read again by the next
-        evaluation). Collective: every rank gets rank 0's answer."""
-        return not self._recall([self._encode(x, ())])
+        with derivatives) or in ``cache_dir``, alone or from a run with derivatives by every
+        parameter (the estimate's with ``--mesh-drift``), then read into memory, not read again
+        by the next evaluation. Collective: every rank gets rank 0's answer."""
+        return any(not self._recall([self._encode(x, names)]) for names in ((), tuple(self.names)))
 
     def _recall(self, keys: list[bytes]) -> list[bytes]:
         """Move into memory what ``keys`` already have (a run with more derivatives, or an entry of

@@ -237,6 +237,28 @@ def test_a_refined_mesh_continues_from_a_check_mesh_whose_fields_came_from_its_c
 
 
 @pytest.mark.slow
+def test_a_resumed_estimate_finds_the_refined_run_with_derivatives(small_config, mesh_dir, tmp_path):
+    """With the drift of the mesh's error the refined mesh's fields at x come from its run with
+    derivatives by every parameter: a resumed check reads them from ``cache_dir`` and solves
+    nothing on either mesh (before, the check mesh solved x again to continue a run not needed)."""
+    from inference.criticism.discretisation import refined_config
+
+    fine_config = refined_config(small_config, "edge")
+    fine = two_design_forward(fine_config, mesh_dir, continuation=True)
+    fine.cache_dir = tmp_path
+    x = fine.null.copy()
+    x[:5] = TRUTH
+    (with_derivatives,) = fine.evaluate_with_jacobian([x], fine.names)
+    coarse = two_design_forward(small_config, mesh_dir, continuation=True)
+    again = two_design_forward(fine_config, mesh_dir, continuation=True)
+    again.cache_dir = tmp_path
+    again.continue_from(coarse, x)
+    assert (coarse.runs, again.runs, again.transferred) == (0, 0, False)
+    np.testing.assert_array_equal(again(x), with_derivatives[0])
+    assert again.runs == 0
+
+
+@pytest.mark.slow
 def test_a_refined_run_that_cannot_continue_is_ramped_and_says_so(small_config, mesh_dir, monkeypatch, caplog):
     """A transfer whose pseudo-time (one step allowed) cannot converge falls back to the load
     ramp: the ramped fields, and a warning naming the design and how the solve went (the ramp
