@@ -445,7 +445,7 @@ def unexplained(scores: list[CandidateScore], carried_sigma: float, larger: Larg
     if larger and not compared:  # else the lead has said it
         factor = f" (it would take the mesh's error at {larger.factor:.1f} times its estimate)"
     return (
-        lead + " The check's own discretisation error exceeds the noise, so this structure may be the "
+        lead + " The check's own discretisation error exceeds half the noise, so this structure may be the "
         f"mesh's{factor}: rerun on a finer mesh before concluding that something outside the registry is missing."
     )
 
@@ -483,6 +483,6 @@ def mesh_like_text(scores: list[CandidateScore]) -> str:
     bound = f" (the other candidates at most {max(others):.0%})" if others else ""
     names = "; ".join(f"{rival_summary(s)} reproduces {s.mesh_share:.0%} of the check mesh's own error" for s in alike)
     return (
-        f" Not named: {names}{bound}. While that error exceeds the noise such an effect cannot be told from "
+        f" Not named: {names}{bound}. While that error exceeds half the noise such an effect cannot be told from "
         "discretisation: test it on a finer mesh."
     )

@@ -83,6 +83,7 @@ REFERENCES = {
 }
 REFINEMENTS = ("uniform", "edge", *REFERENCES)
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
+UNCONVERGED_AMPLITUDE = 2.5  # a correction beyond first-order extrapolation (2) and its usual sd
 BETTER_MESH_FAILS = "the discretisation estimate's better mesh does not converge at the calibrated parameters"
 
 
@@ -292,14 +293,15 @@ class DiscretisationError:
             f"({self.remaining_sigma:.1f} sigma, {self.basis}) is carried next to the noise."
         )
         if self.amplitude is not None:
+            unconverged = f"; above {UNCONVERGED_AMPLITUDE:g}: the better mesh is itself far from converged"
             text += (
                 f" The measurement puts the correction at {self.amplitude:.2f} ± {self.amplitude_sd:.2f} times "
                 f"the shift (1: the better mesh's field; {self.extrapolated:.2f}: the extrapolation"
-                f"{'; above 2: the better mesh is itself far from converged' if self.amplitude > 2.5 else ''})."
+                f"{unconverged if self.amplitude > UNCONVERGED_AMPLITUDE else ''})."
             )
         if not self.resolved:
             text += (
-                f" It exceeds the noise: effects smaller than it cannot be told apart from discretisation. "
+                f" It exceeds half the noise: effects smaller than it cannot be told apart from discretisation. "
                 f"The error lives at the membrane edge: at order {self.order:g} a mesh with cells of "
                 f"mesh.h_edge <= {self.suggested_h_edge():.2g} mm there would resolve it"
             )

@@ -141,10 +141,10 @@ def candidate_lines(result: CheckResult) -> list[str]:
         "## 3. Which effect is missing",
         "",
         "Each candidate's field signature at the calibrated parameters, with what re-tuning the skin "
-        "parameters absorbs projected out; ΔBIC > 6 is strong evidence; 'fitted' rows were calibrated with "
-        "the effect added; 'mesh error reproduced': the share of the check mesh's own error (its two-mesh "
-        f"shift) the signature reproduces (from {MESH_LIKE:.0%} on, such a candidate is not named while that error "
-        "exceeds the noise).",
+        f"parameters absorbs projected out; ΔBIC > {STRONG_EVIDENCE:g} is strong evidence; '(fit)' rows were "
+        "calibrated with the effect added; 'mesh error reproduced': the share of the check mesh's own error (its "
+        f"two-mesh shift) the signature reproduces (from {MESH_LIKE:.0%} on, such a candidate is not named while "
+        "that error exceeds half the noise).",
         "",
     ]
     return (
@@ -158,7 +158,7 @@ def candidate_lines(result: CheckResult) -> list[str]:
 def uncalibrated_note(result: CheckResult) -> list[str]:
     """Why a strong linearised score names nothing when the residual is consistent and a mesh error
     is carried: the carried error is a Gaussian summary of a deterministic field, and along some
-    candidate's signature its remainder alone scores high (docs/criticism.md §16, §19)."""
+    candidate's signature its remainder alone scores high (docs/criticism.md §16, §25)."""
     d = result.diagnosis
     if (
         d.metrics.structured
@@ -170,10 +170,9 @@ def uncalibrated_note(result: CheckResult) -> list[str]:
         "",
         "The residual is consistent with the noise and the carried discretisation error, so no candidate is "
         f"named: a ΔBIC above {STRONG_EVIDENCE:g} here does not say that an effect is missing. The mesh's "
-        "remaining error is carried as a correlated Gaussian field; where its actual remainder runs along a "
-        "candidate's signature that candidate's linearised test scores high on its own (on independent data with "
-        "no hidden effect, compressibility does, which reproduces 12-35 % of the mesh's own error: "
-        "docs/criticism.md §19, §22).",
+        "remaining error is carried as a correlated Gaussian field that spreads it over many directions; the real "
+        "remainder lies along a few smooth ones, and a candidate's linearised test along them scores high with "
+        "no effect hidden (measured on independent data: docs/criticism.md §25).",
     ]
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.criticism.check import CheckResult
+from inference.criticism.diagnosis import STRONG_EVIDENCE
 from inference.plots import field_grid, pyplot, save_figure
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
@@ -124,7 +125,7 @@ def candidates_plot(result: CheckResult, path: Path) -> Path:
     y = np.arange(len(scores))[::-1]
     colors = ["C2" if s.explains else "C1" if s.mesh_like else "0.6" for s in scores]
     ax.barh(y, [s.delta_bic for s in scores], color=colors)
-    ax.axvline(6, color="k", ls="--", lw=1, label="strong evidence (ΔBIC = 6)")
+    ax.axvline(STRONG_EVIDENCE, color="k", ls="--", lw=1, label=f"strong evidence (ΔBIC = {STRONG_EVIDENCE:g})")
     larger = result.diagnosis.larger_model_error
     if larger is not None:  # what a candidate must also beat (diagnosis.larger_model_error)
         label = f"the carried mesh error × {larger.factor:.2f} (ΔBIC = {larger.delta_bic:+.0f})"
