@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from skinfem.config import PARAM_NAMES, Config
+from skinfem.config import N_SKIN, PARAM_NAMES, Config
 from skinfem.continuation import Continuation, ConvergedStates, transfer
 from skinfem.dic import StrainGauge, SurfaceStrainGauge
 from skinfem.effects import EFFECTS, effect_parameters
@@ -87,7 +87,7 @@ def parameter_space(skin_bounds: np.ndarray, effects: Sequence[str]) -> tuple[li
     extra = effect_parameters(list(effects))
     names = list(PARAM_NAMES) + [name for name, _ in extra]
     bounds = np.vstack([np.asarray(skin_bounds, float)] + [[q.low, q.high] for _, q in extra])
-    null = np.concatenate([bounds[:5].mean(axis=1), [q.null for _, q in extra]])
+    null = np.concatenate([bounds[:N_SKIN].mean(axis=1), [q.null for _, q in extra]])
     return names, bounds, null
 
 
@@ -230,8 +230,8 @@ class FEForward(ForwardModel):
         from skinfem.params import Design, SkinParams
 
         model = self.model
-        model.set_effects(dict(zip(self.names[5:], map(float, x[5:]))))
-        params, design = SkinParams.from_array(x[:5]), Design(*self.designs[j])
+        model.set_effects(dict(zip(self.names[N_SKIN:], map(float, x[N_SKIN:]))))
+        params, design = SkinParams.from_array(x[:N_SKIN]), Design(*self.designs[j])
         t_grid = model.load_fractions()
         frames = sorted({float(t_grid[k]) for jj, k in self.picks if jj == j})
         indices = self.index(names)
@@ -344,7 +344,7 @@ class FEForward(ForwardModel):
         at ``x``: all of them under a pre-stress; without one (every pre-stressing effect at
         zero) the reference is the stress-free u = 0 whatever the other parameters, and only
         the pre-stressing effects' own parameters move it."""
-        prestressing = [n for n in self.names[5:] if EFFECTS[n.split(".")[0]].prestressed]
+        prestressing = [n for n in self.names[N_SKIN:] if EFFECTS[n.split(".")[0]].prestressed]
         if any(x[self.names.index(n)] != 0.0 for n in prestressing):
             return list(range(len(names)))
         return [k for k, name in enumerate(names) if name in prestressing]

@@ -21,6 +21,8 @@ import numpy as np
 
 PRESET_DIR = Path(__file__).parent / "presets"
 PARAM_NAMES = ("mu", "k1", "k2", "kappa", "theta")
+N_SKIN = len(PARAM_NAMES)  # the skin parameters lead every parameter vector, in this order
+THETA = PARAM_NAMES.index("theta")  # index of the fiber angle [deg] in parameter vectors
 PARAM_UNITS = ("MPa", "MPa", "-", "-", "deg")
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -35,7 +35,7 @@ from inference.criticism.discretisation import (
 from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
 from inference.forward import FailedRun, FEForward, ForwardModel
 from inference.observations import Measurement, map_to_cells
-from skinfem.config import Config
+from skinfem.config import N_SKIN, Config
 from skinfem.dic import StrainGauge
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.parallel import collective, on_root
@@ -184,7 +184,7 @@ def emulator_start(emulator: Emulator, measurements: list[Measurement], seed: in
         emulator, ObservedWeights.project(emulator, observations), noise="known", gp_variance="exact"
     )
     with torch.no_grad():
-        return posterior.constrain(torch.as_tensor(find_mode(posterior, seed=seed)))[:5].numpy()
+        return posterior.constrain(torch.as_tensor(find_mode(posterior, seed=seed)))[:N_SKIN].numpy()
 
 
 def starting_point(
@@ -194,10 +194,10 @@ def starting_point(
     skin parameters, else the emulator's posterior mode, else the best of a few spread points."""
     start = forward.null.copy()
     if settings.start is not None:
-        start[:5] = settings.start
+        start[:N_SKIN] = settings.start
         return start, "given start"
     if emulator is not None:
-        start[:5] = on_root(forward.comm, lambda: emulator_start(emulator, measurements))
+        start[:N_SKIN] = on_root(forward.comm, lambda: emulator_start(emulator, measurements))
         return start, "emulator's posterior mode"
     return spread_start(forward, data), "best of 5 spread points"
 
@@ -208,10 +208,9 @@ def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -
     from scipy.stats import qmc
 
     log.info("choosing the start: the best of %d spread points", n)
-    unit = np.vstack([np.full(5, 0.5), qmc.LatinHypercube(d=5, seed=seed).random(n - 1)])
-    points = [
-        np.concatenate([forward.bounds[:5, 0] + u * np.ptp(forward.bounds[:5], axis=1), forward.null[5:]]) for u in unit
-    ]
+    skin = forward.bounds[:N_SKIN]
+    unit = np.vstack([np.full(N_SKIN, 0.5), qmc.LatinHypercube(d=N_SKIN, seed=seed).random(n - 1)])
+    points = [np.concatenate([skin[:, 0] + u * np.ptp(skin, axis=1), forward.null[N_SKIN:]]) for u in unit]
     chi2 = [
         np.inf if f is None else float(np.nansum(data.whitened_residual(f) ** 2)) for f in forward.evaluate_many(points)
     ]
@@ -268,18 +267,7 @@ def run_check(
     carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
     shift = None if disc is None else disc.shift
     log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
-    diagnosis = diagnose(
-        model,
-        baseline,
-        data,
-        settings.candidates,
-        half,
-        band,
-        settings.confirm,
-        carried_sigma=carried,
-        mesh_shift=shift,
-        max_iterations=settings.max_iterations,
-    )  # also the baseline's metrics
+    diagnosis = _diagnose(model, baseline, data, settings, (half, band), (carried, shift))  # also its metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
     work.diagnose = meter.lap()
 
@@ -353,20 +341,34 @@ def _next_round(
     if not settings.add:
         return None
     log.info("diagnosing what is still missing with %s added", " and ".join(settings.add))
-    next_round = diagnose(
+    next_round = _diagnose(model, last, data, settings, region, mesh_error, settings.add)
+    timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
+    return next_round
+
+
+def _diagnose(
+    model: ForwardModel,
+    cal: Calibration,
+    data: Data,
+    settings: CheckSettings,
+    region: tuple[float, float],
+    mesh_error: tuple[float, np.ndarray | None],
+    added: Sequence[str] = (),
+) -> Diagnosis:
+    """:func:`diagnose` of ``cal`` over the candidates not ``added``, as ``settings`` set it up;
+    ``region`` and ``mesh_error`` as for :func:`_next_round`."""
+    return diagnose(
         model,
-        last,
+        cal,
         data,
-        [c for c in settings.candidates if c not in settings.add],
+        [c for c in settings.candidates if c not in added],
         *region,
         settings.confirm,
         carried_sigma=mesh_error[0],
-        added=settings.add,
+        added=added,
         mesh_shift=mesh_error[1],
         max_iterations=settings.max_iterations,
     )
-    timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
-    return next_round
 
 
 def _verdict(
@@ -398,7 +400,7 @@ def compare(
     Returns (model, data, baseline, error)."""
     near = PRE_CORRECTION_TOLERANCE if settings.discretisation else 0.0
     baseline = calibrate(
-        forward, data, start, list(range(5)), max_iterations=settings.max_iterations, relative_tolerance=near
+        forward, data, start, list(range(N_SKIN)), max_iterations=settings.max_iterations, relative_tolerance=near
     )
     if not settings.discretisation:
         return forward, data, baseline, None
@@ -413,7 +415,7 @@ def compare(
     work.refined, refined_s = meter.lap(), time.perf_counter() - start
     model = CorrectedForward(forward, disc.shift, drift, None if drift is None else baseline.x)
     data = data.with_model_error(disc.model_error(data.xy, data.masks))
-    x0, free = np.append(baseline.x, model.null[-1]), [*range(5), len(model.names) - 1]
+    x0, free = np.append(baseline.x, model.null[-1]), [*range(N_SKIN), len(model.names) - 1]
     # the amplitude starts at 1, away from its optimum: the full number of trial steps
     log.info("calibrating the baseline again, corrected by a fitted multiple of the mesh's error")
     baseline = calibrate(model, data, x0, free, max_iterations=settings.max_iterations)

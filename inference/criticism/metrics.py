@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from inference.criticism.calibration import Calibration
 from inference.criticism.data import Data, stack
+from skinfem.config import THETA
 from skinfem.io import COMPONENTS
 
 ALPHA = 0.01  # posterior-predictive p below which the residual is "structured" (not noise)
@@ -161,7 +162,7 @@ def region_heterogeneity(cal: Calibration, data: Data, half: float, band: float,
     """z of :func:`heterogeneity_statistic` over the regions of :func:`region_masks` against draws
     of the noise model: large when the residual is concentrated (a missing effect peaks at the
     membrane's edges and corners), ~0 for noise of any sd."""
-    theta = float(cal.x[4])
+    theta = float(cal.x[THETA])
     groups = [
         np.stack(list(region_masks(data.xy[o], half, theta, band).values())) & m for o, m in enumerate(data.masks)
     ]
@@ -235,7 +236,7 @@ def rank_regions(cal: Calibration, data: Data, half: float, band: float) -> list
     """Regions ranked by RMS standardised residual (data - model)/sd [sigma]; noise alone gives ~1.
 
     The sd is the total one (noise and model error); points of every observation are pooled."""
-    theta = float(cal.x[4])
+    theta = float(cal.x[THETA])
     squares = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=2)  # (n_obs, n_pts)
     sums: dict[str, list[float]] = {}
     for o, m in enumerate(data.masks):

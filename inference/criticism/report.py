@@ -13,6 +13,7 @@ from inference.criticism.check import CheckResult, PhaseWork
 from inference.criticism.diagnosis import MESH_LIKE, STRONG_EVIDENCE, CandidateScore
 from inference.criticism.report_figures import candidates_plot, error_falls_plot, regions_map, residual_maps
 from inference.criticism.report_file import finite_or_null, report_dict
+from skinfem.config import N_SKIN
 from skinfem.effects import EFFECTS, get_effect
 from skinfem.outputs import write_text
 
@@ -236,7 +237,7 @@ def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:
         )
     lines += ["", "![error falls](error_falls.png)", "", *estimate_lines(result)]
     final = result.versions[-1].calibration
-    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[5:]) if name in EFFECTS]
+    added = [name for name in dict.fromkeys(n.split(".")[0] for n in final.free_names[N_SKIN:]) if name in EFFECTS]
     for name in added:
         values = {q.split(".", 1)[1]: float(final.x[final.names.index(q)]) for q in get_effect(name).qualified_names()}
         lines += ["", f"{name} in the final version: {get_effect(name).describe(values)}"]

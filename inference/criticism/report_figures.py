@@ -10,6 +10,7 @@ import numpy as np
 from inference.criticism.check import CheckResult
 from inference.criticism.diagnosis import STRONG_EVIDENCE
 from inference.plots import field_grid, pyplot, save_figure
+from skinfem.config import THETA
 
 COMPONENT_LABELS = ("E_xx", "E_yy", "E_xy")
 
@@ -32,7 +33,7 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
             titles,
             out,
             result.half,
-            float(cal.x[4]),
+            float(cal.x[THETA]),
             window=2 * result.half,
             suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
             f"residual RMSE {result.versions[version].metrics.rmse:.2e}",
@@ -57,7 +58,7 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     band = result.band
     for d, style in ((h, "k--"), (h - band, "k:"), (h + band, "k:")):
         ax.plot([-d, d, d, -d, -d], [-d, -d, d, d, -d], style, lw=1)
-    theta = np.radians(v.calibration.x[4])
+    theta = np.radians(v.calibration.x[THETA])
     r = 2.2 * h
     for sign in (1, -1):
         ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)

@@ -12,6 +12,7 @@ from inference.criticism.calibration import Estimate
 from inference.criticism.check import CheckResult, CheckTimings
 from inference.criticism.diagnosis import CandidateScore, Diagnosis, LargerModelError
 from inference.criticism.metrics import Hotspot, RegionResidual, ResidualMetrics
+from skinfem.config import N_SKIN
 
 
 def finite_or_null(value):
@@ -52,7 +53,7 @@ def report_dict(result: CheckResult) -> dict:
             "nugget": result.data.noise.nugget,
         },
         "observations": [{"alpha": o.alpha.tolist(), "t": o.t, "source": str(o.path)} for o in result.observations],
-        "start": {"from": result.start_from, **dict(zip(result.names[:5], map(float, result.start)))},
+        "start": {"from": result.start_from, **dict(zip(result.names[:N_SKIN], map(float, result.start)))},
         "discretisation": None
         if result.discretisation is None
         else {
