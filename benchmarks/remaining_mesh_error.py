@@ -92,7 +92,8 @@ def at_points(fields: np.ndarray, points: np.ndarray, xy: np.ndarray, masks: np.
 
 def scored(field: np.ndarray, inputs: dict, signatures: dict) -> dict:
     """Whitened squared norm of ``field`` [chi^2 units], its part beyond the calibrated
-    parameters, and each candidate's score statistic on it."""
+    parameters, and each candidate's score statistic on it, with the candidate's parameters
+    fitted to it (linearised, beyond what the calibrated ones absorb)."""
     from inference.criticism.diagnosis import fit_beyond
 
     data, cal = inputs["data"], inputs["cal"]
@@ -101,8 +102,9 @@ def scored(field: np.ndarray, inputs: dict, signatures: dict) -> dict:
     beyond = w - q @ (q.T @ w)
     row = {"chi2": float(w @ w), "beyond_calibrated": float(beyond @ beyond)}
     for name, S in signatures.items():
-        _, fitted = fit_beyond(q, S, w)
+        estimate, fitted = fit_beyond(q, S, w)
         row[name] = float(fitted @ fitted)
+        row[f"{name}_estimate"] = estimate.tolist()  # the linearised fit of its parameters to ``field``
     return row
 
 
@@ -114,7 +116,7 @@ def carried_expectation(inputs: dict, signatures: dict, draws: int = 200, seed: 
     for o, mask in enumerate(data.masks):
         fields[:, o, mask] = data.model_error.sample(data.xy[o, mask], o, mask, (draws,), rng)
     rows = [scored(field, inputs, signatures) for field in fields]
-    return {key: float(np.mean([row[key] for row in rows])) for key in rows[0]}
+    return {key: float(np.mean([row[key] for row in rows])) for key in rows[0] if not key.endswith("_estimate")}
 
 
 def refined_at_truth(model, x_true: np.ndarray) -> np.ndarray:
