@@ -151,6 +151,20 @@ class CheckTimings:
 
 @dataclass
 class CheckResult:
+    """Everything a check found, as :func:`run_check` returns it and the report writes it.
+
+    Attributes:
+        data: the measurements at their points (n_obs, n_pts), with the noise and carried
+            model-error terms the check used.
+        observations: the measurements as read (thinned to the check's spacing).
+        names, bounds: the parameter vector's names and prior box (p, 2) [units of each].
+        half, band: the membrane's half size and the half-width of its edge band [mm].
+        versions: the baseline, then each added effect's version.
+        start: (p,) the calibration's start; ``start_from`` says where it came from.
+        gauge_text: how model strains became measurements (the DIC operator), for the report.
+        fe_seconds_per_run: wall seconds per FE simulation on one rank.
+    """
+
     data: Data
     observations: list[Measurement]
     names: list[str]

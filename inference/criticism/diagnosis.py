@@ -308,6 +308,11 @@ def larger_model_error(cal: Calibration, data: Data) -> LargerModelError | None:
 
 @dataclass
 class Diagnosis:
+    """One diagnosis of a calibrated model (:func:`diagnose`): its residual's metrics, regions
+    (ranked) and hotspot, the candidates' scores (best first), the confirmation fits by effect,
+    the verdict's text, its FE runs and wall seconds, and the larger mesh error a candidate had
+    to beat (None when the residual is consistent)."""
+
     metrics: ResidualMetrics
     regions: list[RegionResidual]
     hotspot: Hotspot
@@ -320,6 +325,7 @@ class Diagnosis:
 
     @property
     def best(self) -> CandidateScore | None:
+        """The named candidate (the first that explains the residual), or None."""
         return next((s for s in self.scores if s.explains), None)
 
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from inference.criticism.data import ModelError
+from inference.criticism.data import Data, ModelError
 from inference.forward import ForwardModel
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
@@ -181,6 +181,8 @@ def refined_config(config: Config, refinement: str = "uniform") -> Config:
 
 
 def describe_mesh(config: Config) -> str:
+    """One phrase for a configuration's mesh, e.g. "Q2, h = 2 mm under the membrane, 1 mm at its
+    edge (6 mm far), 2 skin layers"."""
     m, degree = config.mesh, config.solver.element_degree
     edge = f", {m.h_edge:g} mm at its edge" if m.edge_refined else ""
     return (
@@ -339,8 +341,10 @@ def correlation_fit(field: np.ndarray, xy: np.ndarray, masks: np.ndarray, h: flo
     return best[1], best[2]
 
 
-def estimate(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data, refinement: str) -> DiscretisationError:
-    """Two-mesh estimate at x; ``coarse``/``fine`` must measure the same points of ``data``;
+def estimate(
+    coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, data: Data, refinement: str
+) -> DiscretisationError:
+    """Two-mesh estimate at x (p,); ``coarse``/``fine`` must measure the same points of ``data``;
     ``fine`` is ``coarse``'s mesh after ``refinement`` (:func:`refined_config`).
 
     Raises:

@@ -19,6 +19,7 @@ from skinfem.outputs import write_text
 
 
 def discretisation_lines(result: CheckResult) -> list[str]:
+    """Section 1's part on the check mesh's own error: the summary and its table."""
     disc = result.discretisation
     if disc is None:
         return ["Discretisation error: not estimated (--no-discretisation).", ""]
@@ -41,6 +42,7 @@ def discretisation_lines(result: CheckResult) -> list[str]:
 
 
 def failure_lines(result: CheckResult) -> list[str]:
+    """The FE runs that did not converge, each a rejected step."""
     if not result.failures:
         return ["Every FE run converged.", ""]
     lines = [
