@@ -183,6 +183,11 @@ class Data:
         """(data - model) / total sd per component, NaN off the mask (still spatially correlated)."""
         return (self.fields - model_fields) / self.total_sd
 
+    def point_mean_square(self, model_fields: np.ndarray) -> np.ndarray:
+        """(n_obs, n_pts) mean over the three components of the squared standardised residual
+        (noise and carried model error alone: 1 on average), NaN off the mask."""
+        return np.nanmean(self.standardised(model_fields) ** 2, axis=2)
+
     def whitened_residual(self, model_fields: np.ndarray) -> np.ndarray:
         """(n_obs, n_pts, 3) model fields -> the measurement's whitened residual, same shape (NaN
         off the mask), under the stated noise and the carried model error."""

@@ -81,7 +81,7 @@ class Hotspot:
 def residual_hotspot(cal: Calibration, data: Data, k: int = HOTSPOT_POINTS) -> Hotspot:
     """The measured point whose ``k`` nearest measured points hold the largest RMS standardised
     residual (k nearest rather than a fixed radius: the disc adapts to the point density)."""
-    squares = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=2)  # (n_obs, n_pts)
+    squares = data.point_mean_square(cal.model_fields)
     xy = np.concatenate([data.xy[o, m] for o, m in enumerate(data.masks)])
     sq = np.concatenate([squares[o, m] for o, m in enumerate(data.masks)])
     k = min(k, len(xy))
@@ -237,7 +237,7 @@ def rank_regions(cal: Calibration, data: Data, half: float, band: float) -> list
 
     The sd is the total one (noise and model error); points of every observation are pooled."""
     theta = float(cal.x[THETA])
-    squares = np.nanmean(data.standardised(cal.model_fields) ** 2, axis=2)  # (n_obs, n_pts)
+    squares = data.point_mean_square(cal.model_fields)
     sums: dict[str, list[float]] = {}
     for o, m in enumerate(data.masks):
         for name, inside in region_masks(data.xy[o], half, theta, band).items():

@@ -11,6 +11,7 @@ import numpy as np
 from inference.criticism.calibration import Calibration
 from inference.criticism.check import CheckResult, PhaseWork
 from inference.criticism.diagnosis import MESH_LIKE, STRONG_EVIDENCE, CandidateScore
+from inference.criticism.metrics import RegionResidual
 from inference.criticism.report_figures import candidates_plot, error_falls_plot, regions_map, residual_maps
 from inference.criticism.report_file import finite_or_null, report_dict
 from skinfem.config import N_SKIN
@@ -127,11 +128,7 @@ def region_lines(result: CheckResult) -> list[str]:
         "",
         "RMS of (measured − model) / sd over each region's points (noise and carried model error alone give 1):",
         "",
-        "| rank | region | points | RMS [σ] |",
-        "|---|---|---|---|",
-    ]
-    lines += [
-        f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(result.diagnosis.regions)
+        *region_table(result.diagnosis.regions),
     ]
     spot = result.diagnosis.hotspot
     return lines + ["", f"The residual peaks {spot.summary()}.", "", "![regions](regions.png)"]
@@ -179,6 +176,12 @@ def uncalibrated_note(result: CheckResult) -> list[str]:
     ]
 
 
+def region_table(regions: list[RegionResidual]) -> list[str]:
+    """The regions ranked by their RMS standardised residual, as a Markdown table."""
+    rows = [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(regions)]
+    return ["| rank | region | points | RMS [σ] |", "|---|---|---|---|", *rows]
+
+
 def candidate_table(scores: list[CandidateScore]) -> list[str]:
     """The candidates' scores, best first; "mesh error reproduced": the share of the check mesh's
     own error the candidate's signature reproduces (diagnosis.mesh_shares)."""
@@ -204,20 +207,15 @@ def next_round_lines(result: CheckResult) -> list[str]:
     d = result.next_round
     if d is None:
         return []
-    return (
-        [
-            "",
-            f"## 6. Next round: what is still missing with {result.versions[-1].calibration.label}",
-            "",
-            d.text,
-            "",
-            "| rank | region | points | RMS [σ] |",
-            "|---|---|---|---|",
-        ]
-        + [f"| {i + 1} | {g.region} | {g.points} | {g.rms_sigma:.2f} |" for i, g in enumerate(d.regions)]
-        + [""]
-        + (candidate_table(d.scores) if d.scores else ["No candidate is left to test."])
-    )
+    return [
+        "",
+        f"## 6. Next round: what is still missing with {result.versions[-1].calibration.label}",
+        "",
+        d.text,
+        "",
+        *region_table(d.regions),
+        "",
+    ] + (candidate_table(d.scores) if d.scores else ["No candidate is left to test."])
 
 
 def version_lines(result: CheckResult, final_maps: list[Path]) -> list[str]:

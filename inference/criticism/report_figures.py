@@ -49,7 +49,7 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
 
     v = result.versions[version]
     data = result.data
-    per_point = np.sqrt(np.nanmean(data.standardised(v.calibration.model_fields) ** 2, axis=2))[data.masks]
+    per_point = np.sqrt(data.point_mean_square(v.calibration.model_fields))[data.masks]
     xy = data.xy[data.masks]
     fig, ax = plt.subplots(figsize=(7.5, 6))
     im = ax.scatter(xy[:, 0], xy[:, 1], c=per_point, s=6, cmap="magma", vmin=0, vmax=max(3.0, per_point.max()))
