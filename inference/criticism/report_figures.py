@@ -42,6 +42,16 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
     return paths
 
 
+def draw_regions(ax, half: float, band: float, theta: float) -> None:
+    """The membrane (|x|, |y| = ``half`` [mm], dashed), its edge strip (± ``band`` [mm], dotted)
+    and the fiber direction ``theta`` [rad] (cyan) on ``ax``."""
+    for d, style in ((half, "k--"), (half - band, "k:"), (half + band, "k:")):
+        ax.plot([-d, d, d, -d, -d], [-d, -d, d, d, -d], style, lw=1)
+    r = 2.2 * half
+    for sign in (1, -1):
+        ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)
+
+
 def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     """Per-point RMS standardised residual (all observations) with the region outlines and, for
     the baseline, the diagnosis's hotspot circled."""
@@ -55,25 +65,11 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     im = ax.scatter(xy[:, 0], xy[:, 1], c=per_point, s=6, cmap="magma", vmin=0, vmax=max(3.0, per_point.max()))
     fig.colorbar(im, ax=ax, label="RMS residual / sd [-]  (noise and model error alone: 1)")
     h = result.half
-    band = result.band
-    for d, style in ((h, "k--"), (h - band, "k:"), (h + band, "k:")):
-        ax.plot([-d, d, d, -d, -d], [-d, -d, d, d, -d], style, lw=1)
-    theta = np.radians(v.calibration.x[THETA])
-    r = 2.2 * h
-    for sign in (1, -1):
-        ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)
+    draw_regions(ax, h, result.band, np.radians(v.calibration.x[THETA]))
     if version == 0:
         spot = result.diagnosis.hotspot
-        ax.add_patch(
-            plt.Circle(
-                (spot.x, spot.y),
-                spot.radius,
-                fill=False,
-                color="lime",
-                lw=1.5,
-                label=f"hotspot: {spot.rms_sigma:.1f} σ over its {spot.points} nearest points",
-            )
-        )
+        label = f"hotspot: {spot.rms_sigma:.1f} σ over its {spot.points} nearest points"
+        ax.add_patch(plt.Circle((spot.x, spot.y), spot.radius, fill=False, color="lime", lw=1.5, label=label))
         ax.legend(loc="lower right", fontsize=8)
     ax.text(
         0.02,
