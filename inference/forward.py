@@ -119,6 +119,58 @@ class TransferredRun:
     far_starts: list[FarStart]  # each equilibrium solved from the interpolated fields
 
 
+class _FrameRecord:
+    """What one simulation of design ``j`` of ``forward`` at ``x`` records as it converges: the
+    observed frames' fields and derivatives by ``names`` (``out``, (n_obs, n_max, 3, 1 + k)) and
+    the converged states for continuation (``states``), from the model's frame and reference
+    callbacks (:meth:`measure`, :meth:`at_reference`)."""
+
+    def __init__(self, forward: FEForward, x: np.ndarray, names: tuple[str, ...], j: int):
+        self.forward, self.names, self.j = forward, names, j
+        self.t_grid = forward.model.load_fractions()
+        self.indices = forward.index(names)
+        self.moving = forward.moving_reference(x, names)
+        self.d_reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference (None: zero)
+        self.out = np.zeros((len(forward.picks), max(forward.counts), 3, 1 + len(names)))
+        self.states = ConvergedStates(np.array(x, dtype=float), None, {})
+
+    def frames(self) -> list[float]:
+        """The load fractions observed in design ``j``, ascending."""
+        return sorted({float(self.t_grid[k]) for jj, k in self.forward.picks if jj == self.j})
+
+    def at_reference(self) -> None:
+        """The unloaded reference converged: keep it, and its derivatives where it moves."""
+        forward = self.forward
+        self.states.reference = forward.model.u_ref.x.array.copy()
+        if self.moving:
+            for k, d_ref in zip(self.moving, forward.sensitivity([self.names[k] for k in self.moving])):
+                self.d_reference[k] = d_ref
+                self.states.sensitivities[self.indices[k]] = (d_ref.x.array.copy(), {})
+
+    def measure(self, t: float) -> None:
+        """Load fraction ``t`` converged: measure the observations made there, keep the state."""
+        forward, model = self.forward, self.forward.model
+        k = int(np.argmin(np.abs(self.t_grid - t)))
+        observed = [o for o, pick in enumerate(forward.picks) if pick == (self.j, k)]
+        if not observed:
+            return
+        du = forward.sensitivity(self.names) if self.names else []
+        for o in observed:
+            gauge, n = forward.gauges[o], forward.counts[o]
+            self.out[o, :n, :, 0] = gauge()
+            for i, derivative in enumerate(gauge.derivatives(du, self.d_reference)):
+                self.out[o, :n, :, 1 + i] = derivative
+        self.states.frames[float(self.t_grid[k])] = model.u.x.array.copy()
+        for i, d_frame in zip(self.indices, du):
+            self.states.sensitivities.setdefault(i, (None, {}))[1][float(self.t_grid[k])] = d_frame.x.array.copy()
+
+    def clear(self) -> None:
+        """Forget a failed continuation's records before the load ramp."""
+        self.out[:] = 0.0
+        self.states.frames.clear()
+        self.states.sensitivities.clear()
+
+
 def _warn_of_ramp(design, far_starts: list[FarStart]) -> None:
     """Warn that the solve from another mesh's fields failed and ``design`` is ramped (slow on a
     fine mesh), with how it went (the last of ``far_starts``: every failed transferred solve
@@ -232,57 +284,26 @@ class FEForward(ForwardModel):
         model = self.model
         model.set_effects(dict(zip(self.names[N_SKIN:], map(float, x[N_SKIN:]))))
         params, design = SkinParams.from_array(x[:N_SKIN]), Design(*self.designs[j])
-        t_grid = model.load_fractions()
-        frames = sorted({float(t_grid[k]) for jj, k in self.picks if jj == j})
-        indices = self.index(names)
-        d_reference = [None] * len(names)  # d u_ref / d p of the pre-stressed reference (None: zero)
-        out = np.zeros((len(self.picks), max(self.counts), 3, 1 + len(names)))
-        states = ConvergedStates(np.array(x, dtype=float), None, {})
-        moving = self.moving_reference(x, names)
-
-        def at_reference():
-            states.reference = model.u_ref.x.array.copy()
-            if moving:
-                for k, d_ref in zip(moving, self.sensitivity([names[k] for k in moving])):
-                    d_reference[k] = d_ref
-                    states.sensitivities[indices[k]] = (d_ref.x.array.copy(), {})
-
-        def measure(t):
-            k = int(np.argmin(np.abs(t_grid - t)))
-            observed = [o for o, pick in enumerate(self.picks) if pick == (j, k)]
-            if not observed:
-                return
-            du = self.sensitivity(names) if names else []
-            for o in observed:
-                gauge, n = self.gauges[o], self.counts[o]
-                out[o, :n, :, 0] = gauge()
-                for i, derivative in enumerate(gauge.derivatives(du, d_reference)):
-                    out[o, :n, :, 1 + i] = derivative
-            states.frames[float(t_grid[k])] = model.u.x.array.copy()
-            for i, d_frame in zip(indices, du):
-                states.sensitivities.setdefault(i, (None, {}))[1][float(t_grid[k])] = d_frame.x.array.copy()
-
+        record = _FrameRecord(self, x, names, j)
         started = time.perf_counter()
-        start = self.continuation.predict(j, x, frames) if self.continuation is not None else None
+        start = self.continuation.predict(j, x, record.frames()) if self.continuation is not None else None
         continued = start is not None and model.solve_frames(
-            params, design, start[1], start[0], measure, at_reference, *self._continuation_solver()
+            params, design, start[1], start[0], record.measure, record.at_reference, *self._continuation_solver()
         )
         factorizations = model.factorizations
         if not continued:
             if start is not None and self.transferred:  # the costly case: a full ramp on a fine mesh
                 _warn_of_ramp(design, model.far_starts)
-            out[:] = 0.0
-            states.frames.clear()
-            states.sensitivities.clear()
-            model.simulate(params, design, on_frame=measure, on_reference=at_reference)
+            record.clear()
+            model.simulate(params, design, on_frame=record.measure, on_reference=record.at_reference)
             factorizations += model.factorizations
         if start is not None and self.transferred:
             seconds = time.perf_counter() - started
             run = TransferredRun(self.designs[j], seconds, factorizations, continued, list(model.far_starts))
             self.transferred_runs.append(run)
         if self.continuation is not None:
-            self.continuation.record(j, states)
-        return out, continued
+            self.continuation.record(j, record.states)
+        return record.out, continued
 
     def continue_from(self, other: FEForward, x: np.ndarray) -> None:
         """Start this model's next simulations, at or near ``x``, from ``other``'s last converged
