@@ -418,7 +418,7 @@ def compare(
     )
     if not settings.discretisation:
         return forward, data, baseline, None
-    start = time.perf_counter()  # the refined phase: the better mesh's runs (and the drift's check-mesh run)
+    refined_started = time.perf_counter()  # the refined phase: the better mesh's runs (and the drift's check-mesh run)
     fine = refined()
     log.info("estimating the mesh's own error: %s at the calibrated parameters", describe_mesh(fine.config))
     meter = WorkMeter(forward.comm)
@@ -426,7 +426,7 @@ def compare(
     drift = mesh_error_drift(forward, fine, baseline.x, data.masks) if settings.mesh_drift else None
     disc = estimate(forward, fine, baseline.x, data, settings.refinement)
     disc.drifts = drift is not None
-    work.refined, refined_s = meter.lap(), time.perf_counter() - start
+    work.refined, refined_s = meter.lap(), time.perf_counter() - refined_started
     model = CorrectedForward(forward, disc.shift, drift, None if drift is None else baseline.x)
     data = data.with_model_error(disc.model_error(data.xy, data.masks))
     x0, free = np.append(baseline.x, model.null[-1]), [*range(N_SKIN), len(model.names) - 1]
