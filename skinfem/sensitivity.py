@@ -13,9 +13,13 @@ directional derivative along da0/dtheta = (-sin theta, cos theta, 0) pi/180.
 
 One tangent assembly and one LU factorisation serve all parameters of a state; each
 parameter costs one assembly of dR/dp and one pair of triangular solves, instead of one full
-nonlinear simulation per parameter for a finite difference. (GMRES preconditioned by the
-factorisation the Newton solve keeps was measured twice and is slower: ~45 iterations per
-parameter, without a lower peak memory; docs/criticism.md §4.)
+nonlinear simulation per parameter for a finite difference. The factorisation is made in the
+Newton solver's own matrix and preconditioner, replacing the one it keeps: one factorisation is
+held at a time (on ``check``'s edge refinement one takes 4.9 GB;
+benchmarks/results/sensitivity_memory.json), and the next Newton solve that reuses its
+factorisation starts from this state's. (GMRES preconditioned by the stale factorisation the
+Newton solve keeps, instead of a new one, was measured twice and is slower: ~45 iterations per
+parameter; docs/criticism.md §4.)
 """
 
 from __future__ import annotations
@@ -58,12 +62,6 @@ class DisplacementSensitivity:
         self._constants = dict(zip(PARAM_NAMES, (model.mu, model.k1, model.k2, model.kappa, model.a0)))
         self._constants.update(model.effect_constants)
         self._forms: dict[str, dolfinx.fem.Form] = {}
-        self._K = dolfinx.fem.petsc.create_matrix(model.problem.J)
-        self._ksp = PETSc.KSP().create(mesh.comm)
-        self._ksp.setType("preonly")
-        pc = self._ksp.getPC()
-        pc.setType("lu")
-        pc.setFactorSolverType("mumps")
         self._rhs = dolfinx.fem.petsc.create_vector(model.V)
 
     def _form(self, name: str):
@@ -83,10 +81,7 @@ class DisplacementSensitivity:
         forms = [self._form(name) for name in names]
         a0 = model.a0.value
         self._da0.value[:] = (-a0[1] * math.pi / 180, a0[0] * math.pi / 180, 0.0)
-        self._K.zeroEntries()
-        dolfinx.fem.petsc.assemble_matrix(self._K, model.problem.J, bcs=model.bcs)
-        self._K.assemble()
-        self._ksp.setOperators(self._K)  # a new factorisation for the new tangent
+        inverse = self._factorise()
         out = []
         for form in forms:
             with self._rhs.localForm() as local:
@@ -97,7 +92,22 @@ class DisplacementSensitivity:
             for bc in model.bcs:
                 bc.set(self._rhs.array_w, alpha=0.0)
             du = dolfinx.fem.Function(model.V)
-            self._ksp.solve(self._rhs, du.x.petsc_vec)
+            inverse.apply(self._rhs, du.x.petsc_vec)
             du.x.scatter_forward()
             out.append(du)
         return out
+
+    def _factorise(self) -> PETSc.PC:
+        """The tangent at the model's current state, assembled into the Newton solver's matrix and
+        factorised in its preconditioner (module doc); the returned PC applies its inverse."""
+        problem = self.model.problem
+        tangent = problem.A
+        tangent.zeroEntries()
+        dolfinx.fem.petsc.assemble_matrix(tangent, problem.J, bcs=self.model.bcs)
+        tangent.assemble()
+        ksp = problem.solver.getKSP()
+        ksp.setOperators(tangent)
+        inverse = ksp.getPC()
+        inverse.setReusePreconditioner(False)  # SNES sets it again at its next tangent
+        inverse.setUp()
+        return inverse
