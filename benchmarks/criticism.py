@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import resource
 import time
 from collections import Counter
 from pathlib import Path
@@ -258,6 +259,7 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
         drawn = NoiseModel(**{**NOISE, "sd": NOISE["sd"] * NOISE_DRAWN.get(case, 1.0)})
         files = write_noisy(fields, points, DESIGNS, drawn, folder / "m", seed, stated_sd=NOISE["sd"])
     verdicts, reports, seconds = rounds(comm.bcast(files), folder, case, args)
+    peaks = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
     if comm.rank or not all(reports):
         return {}
     first, last = reports[0], reports[-1]
@@ -300,6 +302,7 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
         "fe_runs_continued": first.timings.fe_runs_continued,
         "fe_runs_read_from_cache": sum(r.timings.fe_runs_read_from_cache for r in reports),  # a resumed check
         "refined_seconds": first.timings.refined_s,
+        "peak_memory_gb_per_rank": peaks,  # each rank process's so far (including earlier rows it ran)
         "estimates_baseline": estimates_json(baseline),
         "estimates_with_true_effect": None if final is None else estimates_json(final),
     }
