@@ -91,6 +91,13 @@ def parameter_space(skin_bounds: np.ndarray, effects: Sequence[str]) -> tuple[li
     return names, bounds, null
 
 
+def prestressing_parameters(names: Sequence[str]) -> list[str]:
+    """The parameters in ``names`` of the effects that pre-stress the unloaded skin (e.g. the
+    pre-stretch's). With all of them at zero every fiber of the unloaded skin sits at the
+    tension-only switch, and their derivatives there are one-sided (docs/criticism.md §4)."""
+    return [n for n in names if "." in n and EFFECTS[n.split(".")[0]].prestressed]
+
+
 @dataclass(frozen=True)
 class PointSet:
     """Where one observation is measured: membrane design, load fraction, points [mm]."""
@@ -365,7 +372,7 @@ class FEForward(ForwardModel):
         at ``x``: all of them under a pre-stress; without one (every pre-stressing effect at
         zero) the reference is the stress-free u = 0 whatever the other parameters, and only
         the pre-stressing effects' own parameters move it."""
-        prestressing = [n for n in self.names[N_SKIN:] if EFFECTS[n.split(".")[0]].prestressed]
+        prestressing = prestressing_parameters(self.names)
         if any(x[self.names.index(n)] != 0.0 for n in prestressing):
             return list(range(len(names)))
         return [k for k, name in enumerate(names) if name in prestressing]

@@ -657,7 +657,8 @@ def test_a_drifting_correction_is_the_better_mesh_wherever_the_parameters_go(lin
     x0 misses the better mesh at a far point by exactly the drift; with the drift
     (``mesh_error_drift``, from both exact Jacobians) the corrected model at amplitude 1 is the
     better mesh everywhere (exact for linear models), and its Jacobian is the derivative of its
-    own fields (central differences, exact for a model bilinear in the amplitude)."""
+    own fields (central differences, exact for a model bilinear in the amplitude). At zero
+    pre-stretch the drift along the pre-stretch is zero, along the other parameters unchanged."""
     from inference.criticism.discretisation import AMPLITUDE, CorrectedForward, mesh_error_drift
 
     rng = np.random.default_rng(8)
@@ -685,6 +686,15 @@ def test_a_drifting_correction_is_the_better_mesh_wherever_the_parameters_go(lin
         np.testing.assert_allclose(jacobian[..., k], central, rtol=1e-9, atol=1e-14)
     with pytest.raises(ValueError, match="both"):
         CorrectedForward(coarse, s0, drift)
+
+    # at zero pre-stretch its derivatives are one-sided (fibers at the tension-only switch): no drift along it
+    prestretch = [k for k, name in enumerate(names) if name.startswith("pre_stretch.")]
+    x0[prestretch] = 0.0
+    at_zero = mesh_error_drift(coarse, fine, x0, np.ones((1, len(grid_xy)), bool))
+    assert prestretch and not np.any(at_zero[..., prestretch])
+    others = np.setdiff1d(np.arange(len(names)), prestretch)
+    np.testing.assert_array_equal(at_zero[..., others], drift[..., others])
+    assert np.all(np.abs(drift[..., prestretch]).max(axis=(0, 1, 2)) > 0)
     from inference.criticism.check import CheckSettings
 
     with pytest.raises(ValueError, match="--mesh-drift needs the discretisation estimate"):

@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.criticism.data import Data, ModelError
-from inference.forward import ForwardModel
+from inference.forward import ForwardModel, prestressing_parameters
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
 
@@ -445,7 +445,9 @@ def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, ma
     """(n_obs, n_pts, 3, n) the derivative of the two-mesh shift f_fine - f_coarse by every
     parameter of ``coarse`` at x: both meshes' exact Jacobians (forward sensitivities, one run
     each), zero off ``masks`` (n_obs, n_pts). Their fields serve :func:`estimate` at x without
-    another run.
+    another run. Zero, too, along the pre-stressing effects' parameters when x has none of them
+    (:func:`~inference.forward.prestressing_parameters`): there their derivative is the
+    compressive side's, which a tensile pre-stretch does not follow (docs/criticism.md §23).
 
     Raises:
         ValueError: the better mesh does not converge at x.
@@ -457,4 +459,8 @@ def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, ma
     (coarse_result,) = coarse.evaluate_with_jacobian([x], names)
     if coarse_result is None:
         raise ValueError("the check's mesh does not converge at its own calibrated parameters")
-    return np.where(masks[..., None, None], fine_result[1] - coarse_result[1], 0.0)
+    drift = np.where(masks[..., None, None], fine_result[1] - coarse_result[1], 0.0)
+    switch = coarse.index(prestressing_parameters(names))
+    if not np.any(x[switch]):
+        drift[..., switch] = 0.0
+    return drift
