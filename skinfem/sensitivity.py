@@ -15,7 +15,7 @@ One tangent assembly and one LU factorisation serve all parameters of a state; e
 parameter costs one assembly of dR/dp and one pair of triangular solves, instead of one full
 nonlinear simulation per parameter for a finite difference. The factorisation is made in the
 Newton solver's own matrix and preconditioner, replacing the one it keeps: one factorisation is
-held at a time (on ``check``'s edge refinement one takes 4.9 GB;
+held at a time (on ``check``'s edge refinement one takes 4.1 GB in MUMPS;
 benchmarks/results/sensitivity_memory.json), and the next Newton solve that reuses its
 factorisation starts from this state's. (GMRES preconditioned by the stale factorisation the
 Newton solve keeps, instead of a new one, was measured twice and is slower: ~45 iterations per

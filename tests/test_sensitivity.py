@@ -134,10 +134,11 @@ def test_at_zero_pre_stretch_its_columns_are_the_compressive_side(small_config, 
 
 def test_sensitivities_replace_the_newton_solvers_factorisation(small_config, mesh_dir):
     """The sensitivities factorise the tangent in the Newton solver's own preconditioner instead
-    of holding a second factorisation (on ``check``'s edge refinement each takes 4.9 GB): a run
-    with derivatives at every frame makes one symbolic factorisation (a second one would be a
-    second factor), and its fields, solved by Newton on the sensitivities' factorisations after
-    the first frame, equal the run's without derivatives (1e-8 of the largest strain)."""
+    of holding a second factorisation (on ``check``'s edge refinement each takes 4.1 GB in
+    MUMPS): a run with derivatives at every frame makes one symbolic factorisation (a second one
+    would be a second factor), and its fields, solved by Newton on the sensitivities'
+    factorisations after the first frame, equal the run's without derivatives (1e-8 of the
+    largest strain)."""
     from skinfem.dic import StrainGauge, SurfaceStrainGauge
     from skinfem.model import SkinModel
     from skinfem.sensitivity import DisplacementSensitivity
