@@ -32,9 +32,17 @@ def abaqus_hgo_volumetric(J, bulk_modulus):
     return 0.5 * bulk_modulus * (0.5 * (J**2 - 1) - ufl.ln(J))
 
 
+# The stress-free skin sits exactly at the fibers' switch (Ebar = 0), where the rounding of
+# a0 . a0 (+-2e-16) picked the tangent's side by the last bit of the fiber angle: at zero
+# pre-stretch its derivative was the tensile side's at theta = 25.2, 26.01 or 30.34 deg and the
+# compressive side's at 25.31 or 30 deg (10-15 % apart). Ebar up to FIBER_SLACK counts as slack
+# (always the compressive side); the energy this drops is below k1 1e-24 MPa.
+FIBER_SLACK = 1e-12
+
+
 def macaulay(x):
-    """<x> = max(x, 0): fibers carry load in tension only."""
-    return ufl.conditional(ufl.gt(x, 0), x, 0)
+    """<x> = max(x, 0) (0 up to FIBER_SLACK): fibers carry load in tension only."""
+    return ufl.conditional(ufl.gt(x, FIBER_SLACK), x, 0)
 
 
 def hgo_energy(F, mu, k1, k2, kappa, a0, bulk_modulus, fiber_invariant: str = "isochoric"):
