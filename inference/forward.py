@@ -125,6 +125,12 @@ class TransferredRun:
     continued: bool  # False: the far-start solve did not converge and the load was ramped
     far_starts: list[FarStart]  # each equilibrium solved from the interpolated fields
 
+    @classmethod
+    def from_json(cls, d: dict) -> TransferredRun:
+        """From :func:`dataclasses.asdict` of one as a report.json holds it."""
+        far_starts = [FarStart.from_json(f) for f in d["far_starts"]]
+        return cls(tuple(d["design"]), d["seconds"], d["factorizations"], d["continued"], far_starts)
+
 
 class _FrameRecord:
     """What one simulation of design ``j`` of ``forward`` at ``x`` records as it converges: the

@@ -92,6 +92,13 @@ class FarStart:
     def factorisations(self) -> int:
         return sum(step.factorised for step in self.steps)
 
+    @classmethod
+    def from_json(cls, d: dict) -> FarStart:
+        """From :func:`dataclasses.asdict` of one as strict JSON holds it (NaN written as null)."""
+        steps = tuple(PseudoTimeStep(**{k: np.nan if v is None else v for k, v in s.items()}) for s in d["steps"])
+        start = np.nan if d["start_residual"] is None else d["start_residual"]
+        return cls(d["converged"], start, steps)
+
     def describe(self) -> str:
         """One line, e.g. "pseudo-time 19 steps, 5 factorisations (0.0145 -> 3.74e-11 N)"."""
         head = f"pseudo-time {len(self.steps)} steps, {self.factorisations} factorisations"

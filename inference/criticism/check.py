@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from inference.criticism.discretisation import (
     refined_config,
 )
 from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
-from inference.forward import FailedRun, FEForward, ForwardModel
+from inference.forward import FailedRun, FEForward, ForwardModel, TransferredRun
 from inference.observations import Measurement, map_to_cells
 from skinfem.config import N_SKIN, Config
 from skinfem.dic import StrainGauge
@@ -137,7 +137,7 @@ class CheckTimings:
     fe_runs_read_from_cache: int = 0
     fe_runs_continued: int = 0  # started from a nearby point's states instead of a load ramp
     refined_fe_runs_continued: int = 0  # started from the check mesh's interpolated fields
-    refined_runs: list[dict] = field(default_factory=list)  # forward.TransferredRun of every rank, as dicts
+    refined_runs: list[TransferredRun] = field(default_factory=list)  # every rank's, rank by rank
     work: PhaseWork | None = None  # None in reports written before it was counted
 
     @classmethod
@@ -146,7 +146,8 @@ class CheckTimings:
         work = d.get("work")
         if work is not None:
             work = PhaseWork(**{phase: SolverWork(**counts) for phase, counts in work.items()})
-        return cls(**{**d, "work": work})
+        refined_runs = [TransferredRun.from_json(r) for r in d["refined_runs"]]
+        return cls(**{**d, "work": work, "refined_runs": refined_runs})
 
 
 @dataclass
@@ -436,7 +437,7 @@ def compare(
     disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
     timings.refined_fe_runs, timings.refined_s = fine.runs, refined_s
     timings.refined_fe_runs_continued = fine.continued
-    timings.refined_runs = [asdict(r) for part in fine.comm.allgather(fine.transferred_runs) for r in part]
+    timings.refined_runs = [r for part in fine.comm.allgather(fine.transferred_runs) for r in part]
     return model, data, baseline, disc
 
 
