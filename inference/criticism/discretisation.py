@@ -446,8 +446,9 @@ def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, ma
     parameter of ``coarse`` at x: both meshes' exact Jacobians (forward sensitivities, one run
     each), zero off ``masks`` (n_obs, n_pts). Their fields serve :func:`estimate` at x without
     another run. Zero, too, along the pre-stressing effects' parameters when x has none of them
-    (:func:`~inference.forward.prestressing_parameters`): there their derivative is the
-    compressive side's, which a tensile pre-stretch does not follow (docs/criticism.md §23).
+    (:func:`~inference.forward.prestressing_parameters`): there every fiber sits at its
+    tension-only switch, and the derivative does not describe a finite pre-stretch
+    (docs/criticism.md §4, §23).
 
     Raises:
         ValueError: the better mesh does not converge at x.
