@@ -26,19 +26,17 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-DESIGNS = ((0.05, 0.05), (0.05, -0.05))
-SKIN = (0.0012, 0.017, 11.0, 0.285, 30.0)  # mu [MPa], k1 [MPa], k2, kappa, theta [deg]
 SCALES = (1e-4, 1e-3, 1e-2, 0.1, 0.5, 1.0, -1.0)
 TENSILE_SIDE = 1e-6  # the tensile side's Jacobian is taken at this fraction of the pre-stretch
 
 
 def linearisation_errors(config_name: str, mesh_dir: Path) -> dict:
     """Per scale of the pre-stretch: the field change's norm and each side's prediction error."""
+    from criticism import DESIGNS, TRUTH, hidden_effects
     from mpi4py import MPI
 
     from inference.forward import FEForward, PointSet
-    from skinfem.config import load_config
-    from skinfem.effects import prestretch_log_strain
+    from skinfem.config import N_SKIN, load_config
 
     config = load_config(config_name)
     g = np.arange(-18.0, 18.1, 2.0)
@@ -47,11 +45,10 @@ def linearisation_errors(config_name: str, mesh_dir: Path) -> dict:
     forward = FEForward(
         config, observations, config.sweep.box, mesh_dir, increments=2, comm=MPI.COMM_SELF, continuation=False
     )
-    eps = prestretch_log_strain(1.08, 1.02, 30.0)
-    names = [f"pre_stretch.{k}" for k in eps]
-    eps = np.array(list(eps.values()))
+    hidden = hidden_effects()["pre_stretch"]
+    names, eps = list(hidden), np.array(list(hidden.values()))
     x0 = forward.null.copy()
-    x0[:5] = SKIN
+    x0[:N_SKIN] = TRUTH
 
     def at(scale: float) -> np.ndarray:
         x = x0.copy()
@@ -59,7 +56,7 @@ def linearisation_errors(config_name: str, mesh_dir: Path) -> dict:
         return x
 
     start = time.perf_counter()
-    skin = list(forward.names[:5])
+    skin = list(forward.names[:N_SKIN])
     ((f0, compressive),) = forward.evaluate_with_jacobian([x0], names + skin)
     ((_, tensile),) = forward.evaluate_with_jacobian([at(TENSILE_SIDE)], names)
     q, _ = np.linalg.qr(compressive[..., len(names) :].reshape(-1, len(skin)))
@@ -75,7 +72,7 @@ def linearisation_errors(config_name: str, mesh_dir: Path) -> dict:
         rows.append(row)
     return {
         "pre_stretch": dict(zip(names, eps.tolist())),
-        "skin": list(SKIN),
+        "skin": list(TRUTH),
         "dofs": forward.model.n_dofs,
         "seconds": round(time.perf_counter() - start, 1),
         "rows": rows,
