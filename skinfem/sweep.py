@@ -7,10 +7,12 @@ finished simulation and ``resume=True`` runs only what is missing.
 Parallel layout: ``MPI.COMM_WORLD`` is split into groups of ``ranks_per_sim`` ranks; each
 group owns one :class:`~skinfem.model.SkinModel` and runs every G-th missing simulation
 (static interleaving: simulations cost about the same, and no rank is lost to a dispatcher).
-World rank 0 is the only writer: it records its own group's results and the ones the other
-group roots send it. ``shard=(i, n)`` restricts the sweep to the simulations whose flat index
-``i_mat * n_des + i_des`` is ``i`` modulo ``n`` (a Slurm job array); :func:`merge_datasets`
-joins the shard files.
+World rank 0 is the only writer of the dataset: it records its own group's results and the ones
+the other group roots leave in the spool folder ``<out>.spool`` (one file per simulation, written
+atomically as soon as it finishes), so a killed sweep loses no simulation that any group
+finished: resuming records the spool's leftovers before it runs anything. ``shard=(i, n)``
+restricts the sweep to the simulations whose flat index ``i_mat * n_des + i_des`` is ``i``
+modulo ``n`` (a Slurm job array); :func:`merge_datasets` joins the shard files.
 """
 
 from __future__ import annotations
@@ -36,10 +38,8 @@ from skinfem.io import (
     write_simulation,
 )
 from skinfem.mesh import DEFAULT_MESH_DIR, ensure_mesh
-from skinfem.outputs import check_output, check_writable, release_lock, take_lock, write_atomically
+from skinfem.outputs import check_output, check_writable, release_lock, remove_output, take_lock, write_atomically
 from skinfem.parallel import CollectiveError, on_root
-
-_RESULT_TAG = 71
 
 
 def latin_hypercube(bounds: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -220,7 +220,7 @@ def run_sweep(
 
 @dataclass(frozen=True)
 class SimulationResult:
-    """One finished simulation of a sweep, as its group root sends it to the writer (rank 0).
+    """One finished simulation of a sweep, as its group root hands it to the writer (rank 0).
 
     Attributes:
         i, j: material and design index.
@@ -239,6 +239,28 @@ class SimulationResult:
     iterations: int = 0
     seconds: float = 0.0
 
+    def write_to(self, out: Path) -> None:
+        """Record it in the dataset ``out``."""
+        write_simulation(out, self.i, self.j, self.strain, self.status, self.message, self.iterations, self.seconds)
+
+    def spool(self, folder: Path) -> None:
+        """Leave it in ``folder`` as ``<i>_<j>.npz`` (written atomically) for the writer."""
+        fields = {"strain": self.strain} if self.strain is not None else {}
+
+        def write(tmp: Path) -> None:
+            index = np.array([self.i, self.j, self.status, self.iterations])
+            np.savez(tmp, index=index, seconds=self.seconds, message=self.message, **fields)
+
+        write_atomically(folder / f"{self.i}_{self.j}.npz", write)
+
+    @classmethod
+    def unspool(cls, path: Path) -> SimulationResult:
+        """The result :meth:`spool` left at ``path``."""
+        with np.load(path) as f:
+            i, j, status, iterations = (int(v) for v in f["index"])
+            strain = f["strain"] if "strain" in f else None
+            return cls(i, j, strain, status, str(f["message"]), iterations, float(f["seconds"]))
+
 
 def _simulate(model, plan: SweepPlan, i: int, j: int) -> SimulationResult:
     """Material i at design j (collective over the model's group; the strain is on its root
@@ -256,12 +278,25 @@ def _simulate(model, plan: SweepPlan, i: int, j: int) -> SimulationResult:
     return SimulationResult(i, j, frames.strain, STATUS_OK, "", iterations, frames.seconds)
 
 
-class _Writer:
-    """World rank 0's side of a sweep: writes every result to ``out`` as it arrives (its own
-    group's and those the other group roots send), with an optional progress bar."""
+def spool_folder(out: Path) -> Path:
+    """Where the group roots other than world rank 0 leave finished simulations for ``out``."""
+    return out.with_name(out.name + ".spool")
 
-    def __init__(self, out: Path, comm: MPI.Comm, expected: int, progress: bool):
-        self.out, self.comm, self.expected = out, comm, expected
+
+def _record_spooled(out: Path, record: Callable[[SimulationResult], None]) -> None:
+    """Pass each result waiting in ``out``'s spool to ``record``, removing its file afterwards
+    (the hidden files of a write in progress are not results yet)."""
+    for path in sorted(spool_folder(out).glob("[0-9]*_[0-9]*.npz")):
+        record(SimulationResult.unspool(path))
+        path.unlink()
+
+
+class _Writer:
+    """World rank 0's side of a sweep: writes its own group's results to ``out`` and those the
+    other group roots leave in the spool, with an optional progress bar."""
+
+    def __init__(self, out: Path, expected: int, progress: bool):
+        self.out = out
         self.results: list[SimulationResult] = []
         self.bar = None
         if progress:
@@ -270,19 +305,16 @@ class _Writer:
             self.bar = tqdm(total=expected, desc=f"sweep {out.name}", unit="sim", file=sys.stderr)
 
     def record(self, r: SimulationResult) -> None:
-        write_simulation(self.out, r.i, r.j, r.strain, r.status, r.message, r.iterations, r.seconds)
+        r.write_to(self.out)
         self.results.append(r)
         if self.bar is not None:
             self.bar.update()
             if r.status == STATUS_FAILED:
                 self.bar.set_postfix(failed=sum(q.status == STATUS_FAILED for q in self.results))
 
-    def receive(self, wait_for_all: bool) -> None:
-        """Record the other groups' results that have arrived (all that are due if ``wait_for_all``)."""
-        while len(self.results) < self.expected and (
-            wait_for_all or self.comm.iprobe(source=MPI.ANY_SOURCE, tag=_RESULT_TAG)
-        ):
-            self.record(self.comm.recv(source=MPI.ANY_SOURCE, tag=_RESULT_TAG))
+    def collect(self) -> None:
+        """Record the spooled results, each file removed once it is in ``out``."""
+        _record_spooled(self.out, self.record)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -314,22 +346,20 @@ def _sweep(
     _on_root(comm, lambda: _prepare_file(out, config, model, plan, force))
     status = comm.bcast(StrainDataset.open(out).status if comm.rank == 0 else None)
     todo = pending_simulations(status, shard, retry_failed)
-    writer = _Writer(out, comm, len(todo), progress) if comm.rank == 0 else None
-    requests: list[MPI.Request] = []
+    writer = _Writer(out, len(todo), progress) if comm.rank == 0 else None
     for i, j in todo[group_id::n_groups]:
         result = _simulate(model, plan, i, j)
         if writer is not None:
             writer.record(result)
-            writer.receive(wait_for_all=False)
+            writer.collect()
         elif group.rank == 0:
-            requests.append(comm.isend(result, dest=0, tag=_RESULT_TAG))
-    if writer is not None:
-        writer.receive(wait_for_all=True)
-    MPI.Request.waitall(requests)
+            result.spool(spool_folder(out))
     comm.barrier()
     if writer is None:
         return None
+    writer.collect()
     writer.close()
+    remove_output(spool_folder(out))
     done = writer.results
     return SweepReport(
         path=out,
@@ -343,10 +373,13 @@ def _sweep(
 
 
 def _prepare_file(out: Path, config: Config, model, plan: SweepPlan, force: bool) -> None:
-    """Check an existing ``out`` for resuming, or create the empty dataset (atomically)."""
+    """Check an existing ``out`` for resuming and record what its killed sweep left in the spool,
+    or create the empty dataset (atomically) with an empty spool."""
     if out.exists() and not force:
         _check_resumable(out, config, model.mesh_sha256, plan)
+        _record_spooled(out, lambda r: r.write_to(out))
         return
+    remove_output(spool_folder(out))
     sampler = model.strain_sampler
     write_atomically(
         out,

@@ -10,7 +10,16 @@ import pytest
 
 from skinfem.config import load_config
 from skinfem.io import STATUS_FAILED, STATUS_OK, StrainDataset
-from skinfem.sweep import latin_hypercube, merge_datasets, parse_shard, pending_simulations, test_split
+from skinfem.sweep import (
+    SimulationResult,
+    latin_hypercube,
+    merge_datasets,
+    parse_shard,
+    pending_simulations,
+    run_sweep,
+    spool_folder,
+    test_split,
+)
 from tests.cli_helpers import MPIRUN, skinid, skinid_command, skinid_env
 
 
@@ -141,6 +150,42 @@ def test_killed_sweep_resumes_to_the_same_file(reference, tiny_toml, mesh_dir, t
     assert not lock.exists()
 
 
+def spool_from(reference, i: int, j: int, out, seconds: float) -> None:
+    """Leave the reference's simulation (i, j) in ``out``'s spool, marked by its ``seconds``."""
+    data = StrainDataset.open(reference)
+    strain = data.strain(i, j)
+    SimulationResult(i, j, strain, int(data.status[i, j]), "", int(data.newton_iterations[i, j]), seconds).spool(
+        spool_folder(out)
+    )
+
+
+def test_a_resumed_sweep_records_what_other_groups_left_in_the_spool(reference, tiny_toml, mesh_dir, tmp_path):
+    """A group other than rank 0's spools each finished simulation at once; when the sweep is
+    killed before the writer records it, resuming records it instead of running it again."""
+    out = tmp_path / "killed.h5"
+    out.write_bytes(reference.read_bytes())
+    with h5py.File(out, "r+") as f:  # as killed: (2, 0) spooled by another group, (3, 1) not finished
+        f["status"][2, 0] = f["status"][3, 1] = 0
+    spool_from(reference, 2, 0, out, seconds=1234.5)
+    (spool_folder(out) / ".3_1.99.tmp.npz").write_bytes(b"half-written")  # a write in progress when killed
+    report = run_sweep(load_config(tiny_toml), out, resume=True, mesh_dir=mesh_dir, progress=False)
+    assert report.n_run == 1 and report.n_done_before == 7
+    assert StrainDataset.open(out).seconds[2, 0] == 1234.5
+    assert not spool_folder(out).exists()
+    assert_same_dataset(out, reference)
+
+
+def test_a_new_sweep_discards_a_stale_spool(reference, tiny_toml, mesh_dir, tmp_path):
+    out = tmp_path / "new.h5"
+    spool_from(reference, 0, 0, out, seconds=1234.5)
+    with np.load(next(spool_folder(out).glob("*.npz"))) as f:
+        assert f["strain"].shape == StrainDataset.open(reference).strain(0, 0).shape
+    run_sweep(load_config(tiny_toml), out, shard=(0, 8), mesh_dir=mesh_dir, progress=False)
+    data = StrainDataset.open(out)
+    assert data.status.tolist() == [[STATUS_OK, 0]] + [[0, 0]] * 3 and data.seconds[0, 0] != 1234.5
+    assert not spool_folder(out).exists()
+
+
 def test_existing_output_needs_resume_and_the_same_config(reference, tiny_toml, mesh_dir, tmp_path):
     res = skinid("sweep", "--config", tiny_toml, "--mesh-dir", mesh_dir, "--out", reference)
     assert res.returncode == 2 and "--resume" in res.stderr
@@ -214,5 +259,6 @@ def test_mpi_groups_equal_serial(reference, tiny_toml, mesh_dir, tmp_path, ranks
         ranks=2,
     )
     assert res.returncode == 0, res.stderr
+    assert not spool_folder(out).exists()
     a, b = StrainDataset.open(out).strain(), StrainDataset.open(reference).strain()
     assert np.abs(a - b).max() <= 1e-6 * np.abs(b).max()
