@@ -67,8 +67,7 @@ def basin(case: str, case_folder: Path, args, comm) -> dict:
     start, _ = starting_point(forward, data, settings, None, measurements)
     refined = refined_forward(forward, measurements, bounds, (args.mesh_dir, comm, cache), settings)
     model, data, baseline, _ = compare(forward, refined, data, start, settings, CheckTimings(), PhaseWork())
-    half = config.mesh.membrane_size / 2
-    baseline, data, statement = check_noise_statement(model, baseline, data, (half, 2 * config.mesh.h_membrane))
+    baseline, data, statement = check_noise_statement(model, baseline, data, settings.membrane(config))
     (effect,) = true_effects(case)
     hidden = hidden_effects()[case]
     from_baseline = extend(model, baseline, data, effect, max_iterations=settings.max_iterations)

@@ -306,12 +306,12 @@ def check_inputs(args):
         if outside:
             raise ValueError(f"--start is outside the prior box: {'; '.join(outside)}")
         settings.start = np.array(args.start)
-    half = config.mesh.membrane_size / 2
+    membrane = settings.membrane(config)
     n_params = 5 + len(effect_parameters(settings.add))
     measurements = [thin(read_measurement(p, config.mesh.length / 2), args.spacing) for p in args.measurement]
     for m in measurements:
-        check_field_of_view(m, half, settings.band or 2 * config.mesh.h_membrane, n_params)
-        check_strain_scale(m, half)
+        check_field_of_view(m, membrane, n_params)
+        check_strain_scale(m, membrane.half)
     if args.noise_sd is not None:
         sd = np.array(args.noise_sd)
     elif all(m.sd is not None for m in measurements):

@@ -17,6 +17,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator
@@ -24,6 +25,9 @@ from scipy.spatial import cKDTree
 
 from skinfem.io import STATUS_OK, StrainDataset
 from skinfem.params import Design
+
+if TYPE_CHECKING:
+    from inference.criticism.metrics import MembraneRegions
 
 STRAIN_MEASURES = ("log", "green", "engineering")
 COLUMNS = ("x", "y", "exx", "eyy", "exy")
@@ -299,8 +303,9 @@ def thin(measurement: Measurement, spacing: float) -> Measurement:
     )
 
 
-def check_field_of_view(measurement: Measurement, membrane_half: float, band: float, n_params: int) -> None:
-    """Refuse a measurement the check cannot use: too few points, or no membrane edge in view.
+def check_field_of_view(measurement: Measurement, membrane: MembraneRegions, n_params: int) -> None:
+    """Refuse a measurement the check cannot use: too few points, or no point of ``membrane``'s
+    edge strip in view.
 
     Raises:
         MeasurementError: naming the file and the problem.
@@ -311,9 +316,9 @@ def check_field_of_view(measurement: Measurement, membrane_half: float, band: fl
             f"{n_params} parameters the check calibrates"
         )
     ring = np.max(np.abs(measurement.xy), axis=1)
-    if not np.any(np.abs(ring - membrane_half) <= band):
+    if not np.any(np.abs(ring - membrane.half) <= membrane.band):
         lo, hi = measurement.xy.min(axis=0), measurement.xy.max(axis=0)
         raise MeasurementError(
             f"{measurement.path}: the field of view (x {lo[0]:.3g}..{hi[0]:.3g}, y {lo[1]:.3g}..{hi[1]:.3g} mm) "
-            f"contains no membrane edge (|x| or |y| = {membrane_half:g} mm): the check needs the edges"
+            f"contains no membrane edge (|x| or |y| = {membrane.half:g} mm): the check needs the edges"
         )

@@ -39,9 +39,15 @@ def start_counting() -> None:
         PETSc.Log.begin()
 
 
+def event_count(event: str) -> int:
+    """How often PETSc's event ``event`` (e.g. "MatLUFactorSym") ran in this process since
+    :func:`start_counting`."""
+    return PETSc.Log.Event(event).getPerfInfo()["count"]
+
+
 def solver_work(comm: MPI.Comm) -> SolverWork:
     """The counts since :func:`start_counting`, summed over ``comm`` (collective)."""
-    local = np.array([PETSc.Log.Event(event).getPerfInfo()["count"] for event in EVENTS.values()], np.int64)
+    local = np.array([event_count(event) for event in EVENTS.values()], np.int64)
     return SolverWork(**{name: int(n) for name, n in zip(EVENTS, comm.allreduce(local, op=MPI.SUM))})
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from inference.criticism import Data, NoiseModel, calibrate, diagnose, rank_regions, residual_metrics
+from inference.criticism import Data, MembraneRegions, NoiseModel, calibrate, diagnose, rank_regions, residual_metrics
 from inference.criticism.calibration import CHI2_TOLERANCE
 from inference.criticism.check import PhaseWork
 from inference.criticism.diagnosis import score_candidates, signatures
@@ -34,6 +34,7 @@ from tests.cli_helpers import MPIRUN, skinid
 TRUTH = SkinParams(0.0012, 0.017, 11.0, 0.285, 30.0)
 PRESTRETCH = {f"pre_stretch.{k}": v for k, v in prestretch_log_strain(1.08, 1.02, 30.0).items()}
 NOISE = dict(sd=np.full(3, 2e-4), length=2.0, nugget=0.3)  # DIC-like: 200 microstrain, 2 mm subsets
+MEMBRANE = MembraneRegions(half=10.0, band=4.0)  # a 20 mm membrane, its edge strip ±4 mm about the outline
 
 
 class LinearForward(ForwardModel):
@@ -223,7 +224,7 @@ def test_no_effect_is_reported_on_noise_only_data(taylor_at_truth):
         y = forward.f0 + noise.sample(xy, (1,), rng)
         data = Data(y, np.ones((1, len(xy)), bool), xy[None], noise)
         cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
-        d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
+        d = diagnose(forward, cal, data, list(EFFECTS), MEMBRANE, confirm=2, max_iterations=30)
         structured += d.metrics.structured
         alarms += d.best is not None
     assert alarms <= 3, f"{alarms} false alarms in 60"
@@ -243,9 +244,9 @@ def test_understated_noise_is_reported_not_explained_by_an_effect(taylor_at_trut
     mask = np.ones((1, len(xy)), bool)
     data = Data(forward.f0 + true.sample(xy, (1,), rng), mask, xy[None], stated)
     cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
-    cal, data, statement = check_noise_statement(forward, cal, data, (10.0, 4.0))
+    cal, data, statement = check_noise_statement(forward, cal, data, MEMBRANE)
     assert not statement.consistent and statement.factor == pytest.approx(2.0, rel=0.15)
-    d = diagnose(forward, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=30)
+    d = diagnose(forward, cal, data, list(EFFECTS), MEMBRANE, confirm=2, max_iterations=30)
     assert d.best is None and not d.metrics.structured
 
     x = forward.x0.copy()
@@ -253,7 +254,7 @@ def test_understated_noise_is_reported_not_explained_by_an_effect(taylor_at_trut
         x[forward.names.index(name)] = value
     data = Data(forward(x) + stated.sample(xy, (1,), rng), mask, xy[None], stated)
     cal = calibrate(forward, data, start, list(range(5)), max_iterations=30)
-    _, _, statement = check_noise_statement(forward, cal, data, (10.0, 4.0))
+    _, _, statement = check_noise_statement(forward, cal, data, MEMBRANE)
     assert statement.consistent and abs(statement.moran_z) > 3
 
 
@@ -540,7 +541,7 @@ def test_an_effect_outside_the_candidates_is_not_attributed(linear_world, grid_x
     """Data made with bonding, candidates without it: structured, but no candidate explains it."""
     data, cal = linear_data(linear_world, grid_xy, {"bonding.compliance": 0.5}, seed=6)
     others = [e for e in EFFECTS if e != "bonding"]
-    d = diagnose(linear_world, cal, data, others, half=10.0, band=4.0, confirm=2, max_iterations=20)
+    d = diagnose(linear_world, cal, data, others, MEMBRANE, confirm=2, max_iterations=20)
     assert d.metrics.structured
     assert d.best is None and "No candidate explains the residual" in d.text
 
@@ -582,7 +583,7 @@ def test_a_candidate_the_skin_compensates_is_fitted_and_named_before_a_partial_o
     q = rng.normal(size=w.size) * 1e-3
     world.A[:, world.names.index("compressibility.log_factor")] = w + 0.8 * q
     data, cal = linear_data(world, grid_xy, {"muscle_stiffness.log_factor": 2.0}, seed=12)
-    d = diagnose(world, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    d = diagnose(world, cal, data, list(EFFECTS), MEMBRANE, confirm=1, max_iterations=30)
     scores = {s.effect: s for s in d.scores}
     assert d.metrics.structured and scores["muscle_stiffness"].fitted and scores["compressibility"].fitted
     assert d.best.effect == "muscle_stiffness" and d.best.share_explained > 0.95
@@ -626,7 +627,7 @@ def test_a_candidate_that_reproduces_the_mesh_error_is_not_named_while_that_erro
     shift (random signatures). A pre-stretch on top, orthogonal to the shift, is named."""
     model, data, cal = mesh_like_case(linear_world, grid_xy, {})
     shift = model.shift
-    d = diagnose(model, cal, data, list(EFFECTS), 10.0, 4.0, confirm=2, carried_sigma=2.0, mesh_shift=shift)
+    d = diagnose(model, cal, data, list(EFFECTS), MEMBRANE, confirm=2, carried_sigma=2.0, mesh_shift=shift)
     scores = {s.effect: s for s in d.scores}
     assert d.metrics.structured and d.best is None
     assert scores["compressibility"].mesh_share == pytest.approx(0.5, abs=0.05)
@@ -634,12 +635,12 @@ def test_a_candidate_that_reproduces_the_mesh_error_is_not_named_while_that_erro
     assert scores["compressibility"].mesh_like and "compressibility" not in d.fits
     assert "Not named: compressibility (linearised Delta BIC" in d.text and "test it on a finer mesh" in d.text
 
-    resolved = diagnose(model, cal, data, list(EFFECTS), 10.0, 4.0, confirm=2, carried_sigma=0.3, mesh_shift=shift)
+    resolved = diagnose(model, cal, data, list(EFFECTS), MEMBRANE, confirm=2, carried_sigma=0.3, mesh_shift=shift)
     assert resolved.best.effect == "compressibility" and "Not named" not in resolved.text
 
     pre_stretch = {f"pre_stretch.{k}": 1.0 for k in ("eps_xx", "eps_yy", "eps_xy")}
     model, data, cal = mesh_like_case(linear_world, grid_xy, pre_stretch)
-    d = diagnose(model, cal, data, list(EFFECTS), 10.0, 4.0, confirm=2, carried_sigma=2.0, mesh_shift=shift)
+    d = diagnose(model, cal, data, list(EFFECTS), MEMBRANE, confirm=2, carried_sigma=2.0, mesh_shift=shift)
     assert d.best.effect == "pre_stretch" and d.best.fitted and d.best.mesh_share < 0.03
 
 
@@ -796,12 +797,12 @@ def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_a
     data = Data(mesh_error, np.ones((1, len(xy)), bool), xy[None], noise)
 
     fixed = calibrate(corrected, data, x0, list(range(5)), max_iterations=30)
-    blamed = diagnose(corrected, fixed, data, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    blamed = diagnose(corrected, fixed, data, list(EFFECTS), MEMBRANE, confirm=1, max_iterations=30)
     assert blamed.metrics.structured
 
     fitted = calibrate(corrected, data, x0, free, max_iterations=30)
     assert abs(fitted.x[-1] - 2.5) < 3 * fitted.sd[-1]
-    d = diagnose(corrected, fitted, data, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    d = diagnose(corrected, fitted, data, list(EFFECTS), MEMBRANE, confirm=1, max_iterations=30)
     assert d.best is None and not d.metrics.structured
 
     x_true = forward.x0.copy()
@@ -809,7 +810,7 @@ def test_a_fitted_correction_amplitude_keeps_a_larger_mesh_error_from_becoming_a
         x_true[forward.names.index(name)] = value
     with_effect = Data(mesh_error + forward(x_true) - forward.f0, data.masks, data.xy, noise)
     fitted = calibrate(corrected, with_effect, x0, free, max_iterations=30)
-    d = diagnose(corrected, fitted, with_effect, list(EFFECTS), half=10.0, band=4.0, confirm=1, max_iterations=30)
+    d = diagnose(corrected, fitted, with_effect, list(EFFECTS), MEMBRANE, confirm=1, max_iterations=30)
     assert d.best is not None and d.best.effect == "pre_stretch"
 
 
@@ -831,7 +832,7 @@ def test_a_model_error_larger_than_carried_is_found_as_such_and_not_blamed_on_an
         y = forward.f0 + 1.5 * carried.sample(xy, 0, masks[0], (1,), rng) + noise.sample(xy, (1,), rng)
         data = Data(y, masks, xy[None], noise, carried)
         cal = calibrate(forward, data, forward.x0, list(range(5)), max_iterations=30)
-        d = diagnose(forward, cal, data, list(EFFECTS), 10.0, 4.0, confirm=1, carried_sigma=2.0, max_iterations=30)
+        d = diagnose(forward, cal, data, list(EFFECTS), MEMBRANE, confirm=1, carried_sigma=2.0, max_iterations=30)
         assert d.metrics.structured and d.best is None
         assert d.larger_model_error.factor == pytest.approx(1.5, abs=0.3)
         assert "may be the mesh's" in d.text
@@ -840,7 +841,7 @@ def test_a_model_error_larger_than_carried_is_found_as_such_and_not_blamed_on_an
     assert ReportDiagnosis.from_json(as_written).larger_model_error == d.larger_model_error
     with_effect = Data(y + forward(x_true) - forward.f0, masks, xy[None], noise, carried)
     cal = calibrate(forward, with_effect, forward.x0, list(range(5)), max_iterations=30)
-    d = diagnose(forward, cal, with_effect, list(EFFECTS), 10.0, 4.0, confirm=1, carried_sigma=2.0, max_iterations=30)
+    d = diagnose(forward, cal, with_effect, list(EFFECTS), MEMBRANE, confirm=1, carried_sigma=2.0, max_iterations=30)
     assert d.best is not None and d.best.effect == "pre_stretch"
     assert d.best.delta_bic > d.larger_model_error.delta_bic
 
@@ -877,7 +878,7 @@ def test_the_hotspot_is_where_a_local_defect_sits(linear_world, grid_xy):
     cal = calibrate(linear_world, data, cal.x, cal.free, max_iterations=20)
     spot = residual_hotspot(cal, data)
     assert np.hypot(spot.x - centre[0], spot.y - centre[1]) <= 40 / 12 + 1e-9  # within one grid step
-    d = diagnose(linear_world, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=20)
+    d = diagnose(linear_world, cal, data, list(EFFECTS), MEMBRANE, confirm=2, max_iterations=20)
     assert d.metrics.structured and d.best is None
     assert f"({spot.x:.1f}, {spot.y:.1f}) mm" in d.text
 
@@ -890,7 +891,7 @@ def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_w
 
     truth = {"pre_stretch.eps_xx": 1.5, "muscle_stiffness.log_factor": -1.0}
     data, cal = linear_data(linear_world, grid_xy, truth, seed=9)
-    first = diagnose(linear_world, cal, data, list(EFFECTS), half=10.0, band=4.0, confirm=2, max_iterations=20)
+    first = diagnose(linear_world, cal, data, list(EFFECTS), MEMBRANE, confirm=2, max_iterations=20)
     assert first.best is not None and first.best.effect in ("pre_stretch", "muscle_stiffness")
     a = first.best.effect
     (b,) = {"pre_stretch", "muscle_stiffness"} - {a}
@@ -900,8 +901,7 @@ def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_w
         with_a,
         data,
         [e for e in EFFECTS if e != a],
-        half=10.0,
-        band=4.0,
+        MEMBRANE,
         confirm=2,
         added=[a],
         max_iterations=20,
@@ -909,7 +909,7 @@ def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_w
     assert second.best is not None and second.best.effect == b
     assert f"--add {a} {b}" in second.text
     both = extend(linear_world, with_a, data, b, max_iterations=20)
-    assert not diagnose(linear_world, both, data, [], half=10.0, band=4.0).metrics.structured
+    assert not diagnose(linear_world, both, data, [], MEMBRANE).metrics.structured
     result = linear_check(linear_world, data, (cal, first), (with_a, second))
     assert_report_reads_back(result, tmp_path)
     # the report says why a strong score names nothing only where that happens: a consistent
@@ -943,11 +943,10 @@ def linear_check(world, data, baseline, added):
         observations=[Measurement(Path("m_0.csv"), np.array([0.05, -0.05]), 1.0, xy, data.fields[0], None)],
         names=world.names,
         bounds=world.bounds,
-        half=10.0,
-        band=4.0,
+        membrane=MEMBRANE,
         versions=[
             Version(cal, diagnosis.metrics, diagnosis.regions),
-            Version(last, residual_metrics(last, data), rank_regions(last, data, 10.0, 4.0)),
+            Version(last, residual_metrics(last, data), rank_regions(last, data, MEMBRANE)),
         ],
         diagnosis=diagnosis,
         next_round=next_round,

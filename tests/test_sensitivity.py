@@ -143,7 +143,7 @@ def test_sensitivities_replace_the_newton_solvers_factorisation(small_config, me
     from skinfem.dic import StrainGauge, SurfaceStrainGauge
     from skinfem.model import SkinModel
     from skinfem.sensitivity import DisplacementSensitivity
-    from skinfem.solver_work import start_counting
+    from skinfem.solver_work import event_count, start_counting
 
     config = small_config.with_changes(solver={"increments": 4})
     model = SkinModel(config, MPI.COMM_SELF, mesh_dir=mesh_dir)
@@ -159,10 +159,3 @@ def test_sensitivities_replace_the_newton_solvers_factorisation(small_config, me
     scale = np.abs(without[-1]).max()
     for (fields, _), reference in zip(with_derivatives, without, strict=True):
         np.testing.assert_allclose(fields, reference, rtol=0, atol=1e-8 * scale)
-
-
-def event_count(name: str) -> int:
-    """How often PETSc's event ``name`` ran in this process (with the event log on)."""
-    from skinfem.fenics import PETSc
-
-    return PETSc.Log.Event(name).getPerfInfo()["count"]

@@ -28,7 +28,7 @@ from inference.criticism.diagnosis import (
     extend,
     verdict,
 )
-from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
+from inference.criticism.metrics import MembraneRegions, RegionResidual, ResidualMetrics, rank_regions, residual_metrics
 
 __all__ = [
     "CandidateScore",
@@ -36,6 +36,7 @@ __all__ = [
     "CalibrationError",
     "Data",
     "Diagnosis",
+    "MembraneRegions",
     "NoiseModel",
     "NoiseStatement",
     "RegionResidual",

@@ -32,7 +32,7 @@ from inference.criticism.discretisation import (
     mesh_error_drift,
     refined_config,
 )
-from inference.criticism.metrics import RegionResidual, ResidualMetrics, rank_regions, residual_metrics
+from inference.criticism.metrics import MembraneRegions, RegionResidual, ResidualMetrics, rank_regions, residual_metrics
 from inference.forward import FailedRun, FEForward, ForwardModel, TransferredRun
 from inference.observations import Measurement, map_to_cells
 from skinfem.config import N_SKIN, Config
@@ -94,6 +94,11 @@ class CheckSettings:
             raise ValueError("--mesh-drift needs the discretisation estimate: drop --no-discretisation")
         if not self.spacing > 0:
             raise ValueError(f"the point spacing must be > 0 mm, got {self.spacing}")
+
+    def membrane(self, config: Config) -> MembraneRegions:
+        """The regions around ``config``'s membrane: its half size and the half-width ``band`` of
+        its edge strip [mm] (None: 2 membrane cells)."""
+        return MembraneRegions(config.mesh.membrane_size / 2, self.band or 2 * config.mesh.h_membrane)
 
 
 @dataclass
@@ -159,7 +164,8 @@ class CheckResult:
             model-error terms the check used.
         observations: the measurements as read (thinned to the check's spacing).
         names, bounds: the parameter vector's names and prior box (p, 2) [units of each].
-        half, band: the membrane's half size and the half-width of its edge band [mm].
+        membrane: the membrane's half size and the half-width of its edge strip [mm], the
+            regions the residual is ranked over.
         versions: the baseline, then each added effect's version.
         start: (p,) the calibration's start; ``start_from`` says where it came from.
         gauge_text: how model strains became measurements (the DIC operator), for the report.
@@ -170,8 +176,7 @@ class CheckResult:
     observations: list[Measurement]
     names: list[str]
     bounds: np.ndarray
-    half: float
-    band: float
+    membrane: MembraneRegions
     versions: list[Version]
     diagnosis: Diagnosis  # of the baseline
     next_round: Diagnosis | None  # of the last version, when effects were added: what is still missing
@@ -266,14 +271,13 @@ def run_check(
     start, start_from = starting_point(forward, data, settings, emulator, measurements)
     timings.setup_s, work.setup = time.perf_counter() - t0, meter.lap()
     log.info("calibrating the baseline on %s (start: %s)", describe_mesh(config), start_from)
-    half = config.mesh.membrane_size / 2
-    band = settings.band or 2 * config.mesh.h_membrane
+    membrane = settings.membrane(config)
 
     t0, runs0 = time.perf_counter(), forward.runs
     refined = refined_forward(forward, measurements, skin_bounds, (mesh_dir, comm, cache_dir), settings)
     model, data, baseline, disc = compare(forward, refined, data, start, settings, timings, work)
     baseline, data, noise_statement = check_noise_statement(
-        model, baseline, data, (half, band), settings.max_iterations // 2
+        model, baseline, data, membrane, settings.max_iterations // 2
     )
     timings.compare_s, timings.compare_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     work.compare = meter.lap()
@@ -282,15 +286,15 @@ def run_check(
     carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
     shift = None if disc is None else disc.shift
     log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
-    diagnosis = _diagnose(model, baseline, data, settings, (half, band), (carried, shift))  # also its metrics
+    diagnosis = _diagnose(model, baseline, data, settings, membrane, (carried, shift))  # also its metrics
     timings.diagnose_s, timings.diagnose_fe_runs = diagnosis.seconds, diagnosis.fe_runs
     work.diagnose = meter.lap()
 
     t0, runs0 = time.perf_counter(), forward.runs
-    versions = add_versions(model, data, baseline, diagnosis, settings, half, band, timings)
+    versions = add_versions(model, data, baseline, diagnosis, settings, membrane, timings)
     timings.add_s, timings.add_fe_runs = time.perf_counter() - t0, forward.runs - runs0
     work.add = meter.lap()
-    next_round = _next_round(model, versions[-1].calibration, data, settings, (half, band), (carried, shift), timings)
+    next_round = _next_round(model, versions[-1].calibration, data, settings, membrane, (carried, shift), timings)
     work.next_round = meter.lap()
     timings.fe_runs_read_from_cache, timings.fe_runs_continued = forward.reused, forward.continued
     diagnosis.text = _verdict(disc, noise_statement.summary(noise.sd), diagnosis, settings.add, next_round)
@@ -299,8 +303,7 @@ def run_check(
         observations=measurements,
         names=forward.names,
         bounds=forward.bounds,
-        half=half,
-        band=band,
+        membrane=membrane,
         versions=versions,
         diagnosis=diagnosis,
         next_round=next_round,
@@ -345,18 +348,18 @@ def _next_round(
     last: Calibration,
     data: Data,
     settings: CheckSettings,
-    region: tuple[float, float],
+    membrane: MembraneRegions,
     mesh_error: tuple[float, np.ndarray | None],
     timings: CheckTimings,
 ) -> Diagnosis | None:
     """With ``settings.add``: the diagnosis repeated on the last version, over the candidates not
-    added (what is still missing); None otherwise. ``region``: the membrane's half size and the
-    edge band [mm]; ``mesh_error``: RMS of the carried mesh error [sd of the noise used] and the
+    added (what is still missing); None otherwise. ``membrane``: the regions the residual is
+    ranked over; ``mesh_error``: RMS of the carried mesh error [sd of the noise used] and the
     two-mesh shift it was estimated from (None without one)."""
     if not settings.add:
         return None
     log.info("diagnosing what is still missing with %s added", " and ".join(settings.add))
-    next_round = _diagnose(model, last, data, settings, region, mesh_error, settings.add)
+    next_round = _diagnose(model, last, data, settings, membrane, mesh_error, settings.add)
     timings.next_round_s, timings.next_round_fe_runs = next_round.seconds, next_round.fe_runs
     return next_round
 
@@ -366,18 +369,18 @@ def _diagnose(
     cal: Calibration,
     data: Data,
     settings: CheckSettings,
-    region: tuple[float, float],
+    membrane: MembraneRegions,
     mesh_error: tuple[float, np.ndarray | None],
     added: Sequence[str] = (),
 ) -> Diagnosis:
     """:func:`diagnose` of ``cal`` over the candidates not ``added``, as ``settings`` set it up;
-    ``region`` and ``mesh_error`` as for :func:`_next_round`."""
+    ``membrane`` and ``mesh_error`` as for :func:`_next_round`."""
     return diagnose(
         model,
         cal,
         data,
         [c for c in settings.candidates if c not in added],
-        *region,
+        membrane,
         settings.confirm,
         carried_sigma=mesh_error[0],
         added=added,
@@ -447,12 +450,12 @@ def add_versions(
     baseline: Calibration,
     diagnosis: Diagnosis,
     settings: CheckSettings,
-    half: float,
-    band: float,
+    membrane: MembraneRegions,
     timings: CheckTimings,
 ) -> list[Version]:
     """The baseline, then ``settings.add`` effects one after the other, each version including
-    the previous ones (a fit made while diagnosing is reused as the first added version)."""
+    the previous ones (a fit made while diagnosing is reused as the first added version), each
+    ranked over ``membrane``'s regions."""
     versions = [Version(baseline, diagnosis.metrics, diagnosis.regions)]
     for effect in settings.add:
         previous = versions[-1].calibration
@@ -463,5 +466,5 @@ def add_versions(
         else:
             log.info("adding %s", effect)
             cal = extend(model, previous, data, effect, max_iterations=settings.max_iterations)
-        versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, half, band)))
+        versions.append(Version(cal, residual_metrics(cal, data), rank_regions(cal, data, membrane)))
     return versions

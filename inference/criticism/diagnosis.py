@@ -16,6 +16,7 @@ from inference.criticism.data import Data, stack
 from inference.criticism.discretisation import AMPLITUDE, MESH_RESOLVED_SIGMA
 from inference.criticism.metrics import (
     Hotspot,
+    MembraneRegions,
     RegionResidual,
     ResidualMetrics,
     morans_i,
@@ -67,20 +68,19 @@ class NoiseStatement:
 
 
 def check_noise_statement(
-    forward: ForwardModel, cal: Calibration, data: Data, region: tuple[float, float], max_iterations: int = 6
+    forward: ForwardModel, cal: Calibration, data: Data, membrane: MembraneRegions, max_iterations: int = 6
 ) -> tuple[Calibration, Data, NoiseStatement]:
     """Is a structured residual only noise larger than stated?
 
     A residual that is larger than the stated noise (PPC p < metrics.ALPHA) is put down to
     noise s times the stated sd (s from :func:`noise_factor`, the carried model error held as
     it is) when, under that scaled noise model, its spatial autocorrelation is the noise's
-    (Moran |z| < NOISE_STRUCTURE_Z) and its mean square is as even over the regions (membrane,
-    edges, corners, far field; ``region``: the membrane's half size and the edge band [mm]) as
-    the noise model's (z < NOISE_STRUCTURE_Z): missing effects are smooth fields (large Moran
-    z) or peak at the membrane's edges and corners. The calibration is then repeated with the
-    scaled noise. (Both tests are scale-free without a model error; with one, noise and
-    carried error weigh differently from point to point, so they are made under the scaled
-    noise model, not the stated one.)
+    (Moran |z| < NOISE_STRUCTURE_Z) and its mean square is as even over ``membrane``'s regions
+    (under it, edges, corners, far field) as the noise model's (z < NOISE_STRUCTURE_Z): missing
+    effects are smooth fields (large Moran z) or peak at the membrane's edges and corners. The
+    calibration is then repeated with the scaled noise. (Both tests are scale-free without a
+    model error; with one, noise and carried error weigh differently from point to point, so
+    they are made under the scaled noise model, not the stated one.)
     """
     metrics = residual_metrics(cal, data)
     statement = NoiseStatement(True, 1.0, metrics.moran_z, metrics.chi2_per_dof)
@@ -91,7 +91,7 @@ def check_noise_statement(
     statement.moran_z = morans_i(scaled.standardised(cal.model_fields), scaled).z
     if abs(statement.moran_z) >= NOISE_STRUCTURE_Z:
         return cal, data, statement
-    statement.heterogeneity_z = region_heterogeneity(cal, scaled, *region)
+    statement.heterogeneity_z = region_heterogeneity(cal, scaled, membrane)
     if statement.heterogeneity_z >= NOISE_STRUCTURE_Z:
         return cal, data, statement
     statement.consistent, statement.factor = False, factor
@@ -334,15 +334,14 @@ def diagnose(
     cal: Calibration,
     data: Data,
     effects: list[str],
-    half: float,
-    band: float,
+    membrane: MembraneRegions,
     confirm: int = 2,
     carried_sigma: float = 0.0,
     added: Sequence[str] = (),
     mesh_shift: np.ndarray | None = None,
     **fit_kwargs,
 ) -> Diagnosis:
-    """Compare, locate and explain: metrics, regions, candidate ranking and the verdict.
+    """Compare, locate and explain: metrics, ``membrane``'s regions, candidate ranking and the verdict.
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
     (only those with strong evidence) are calibrated for real, and their fitted Delta BIC and
@@ -359,7 +358,7 @@ def diagnose(
     """
     start, runs0 = time.perf_counter(), forward.runs
     metrics = residual_metrics(cal, data)
-    regions, hotspot = rank_regions(cal, data, half, band), residual_hotspot(cal, data)
+    regions, hotspot = rank_regions(cal, data, membrane), residual_hotspot(cal, data)
     sigs = signatures(forward, cal, data, effects)
     scores = score_candidates(cal, data, sigs)
     if mesh_shift is not None:

@@ -51,6 +51,35 @@ class ResidualMetrics:
 
 
 @dataclass(frozen=True)
+class MembraneRegions:
+    """The named regions around a square membrane |x|, |y| <= ``half`` [mm]: under it, its edges
+    and corners (a strip of half-width ``band`` [mm] about its outline) and the far field beyond
+    that strip, split by the angle to the fiber direction."""
+
+    half: float
+    band: float
+
+    def masks(self, xy: np.ndarray, theta_deg: float) -> dict[str, np.ndarray]:
+        """Points (n, 2) [mm] of each named region; the far field is split by the angle between a
+        point's position and the fiber direction ``theta_deg`` [deg]."""
+        ax, ay = np.abs(xy[:, 0]), np.abs(xy[:, 1])
+        ring = np.maximum(ax, ay)
+        corner = (np.abs(ax - self.half) <= self.band) & (np.abs(ay - self.half) <= self.band)
+        edge = (np.abs(ring - self.half) <= self.band) & ~corner
+        far = ring > self.half + self.band
+        angle = np.degrees(np.abs(np.arctan2(xy[:, 1], xy[:, 0]) - math.radians(theta_deg))) % 180
+        off = np.minimum(angle, 180 - angle)
+        return {
+            "under the membrane": ring < self.half - self.band,
+            "membrane edges": edge,
+            "membrane corners": corner,
+            "far field along the fibers": far & (off <= 30),
+            "far field across the fibers": far & (off >= 60),
+            "far field, oblique to the fibers": far & (off > 30) & (off < 60),
+        }
+
+
+@dataclass(frozen=True)
 class RegionResidual:
     """RMS standardised residual [sigma] over the points of one named region."""
 
@@ -158,14 +187,12 @@ def heterogeneity_statistic(standardised: np.ndarray, groups: list[np.ndarray]) 
     return float(np.sum(counts[keep] * np.log(means / (sums[keep].sum() / counts[keep].sum())) ** 2))
 
 
-def region_heterogeneity(cal: Calibration, data: Data, half: float, band: float, n_sim: int = 400) -> float:
-    """z of :func:`heterogeneity_statistic` over the regions of :func:`region_masks` against draws
+def region_heterogeneity(cal: Calibration, data: Data, membrane: MembraneRegions, n_sim: int = 400) -> float:
+    """z of :func:`heterogeneity_statistic` over the ``membrane``'s regions against draws
     of the noise model: large when the residual is concentrated (a missing effect peaks at the
     membrane's edges and corners), ~0 for noise of any sd."""
     theta = float(cal.x[THETA])
-    groups = [
-        np.stack(list(region_masks(data.xy[o], half, theta, band).values())) & m for o, m in enumerate(data.masks)
-    ]
+    groups = [np.stack(list(membrane.masks(data.xy[o], theta).values())) & m for o, m in enumerate(data.masks)]
     stat = heterogeneity_statistic(data.standardised(cal.model_fields), groups)
     null = np.array([heterogeneity_statistic(f, groups) for f in null_fields(data, n_sim)])
     return float((stat - null.mean()) / null.std())
@@ -209,38 +236,16 @@ def residual_metrics(cal: Calibration, data: Data, n_draws: int = 4000, seed: in
     )
 
 
-def region_masks(xy: np.ndarray, half: float, theta_deg: float, band: float) -> dict[str, np.ndarray]:
-    """Points (n, 2) [mm] of each named region around a membrane |x|, |y| <= half [mm].
-
-    ``band`` [mm] is the half-width of the edge strip; the far field (beyond the strip) is
-    split by the angle between a point's position and the fiber direction theta.
-    """
-    ax, ay = np.abs(xy[:, 0]), np.abs(xy[:, 1])
-    ring = np.maximum(ax, ay)
-    corner = (np.abs(ax - half) <= band) & (np.abs(ay - half) <= band)
-    edge = (np.abs(ring - half) <= band) & ~corner
-    far = ring > half + band
-    angle = np.degrees(np.abs(np.arctan2(xy[:, 1], xy[:, 0]) - math.radians(theta_deg))) % 180
-    off = np.minimum(angle, 180 - angle)
-    return {
-        "under the membrane": ring < half - band,
-        "membrane edges": edge,
-        "membrane corners": corner,
-        "far field along the fibers": far & (off <= 30),
-        "far field across the fibers": far & (off >= 60),
-        "far field, oblique to the fibers": far & (off > 30) & (off < 60),
-    }
-
-
-def rank_regions(cal: Calibration, data: Data, half: float, band: float) -> list[RegionResidual]:
-    """Regions ranked by RMS standardised residual (data - model)/sd [sigma]; noise alone gives ~1.
+def rank_regions(cal: Calibration, data: Data, membrane: MembraneRegions) -> list[RegionResidual]:
+    """The ``membrane``'s regions ranked by RMS standardised residual (data - model)/sd [sigma];
+    noise alone gives ~1.
 
     The sd is the total one (noise and model error); points of every observation are pooled."""
     theta = float(cal.x[THETA])
     squares = data.point_mean_square(cal.model_fields)
     sums: dict[str, list[float]] = {}
     for o, m in enumerate(data.masks):
-        for name, inside in region_masks(data.xy[o], half, theta, band).items():
+        for name, inside in membrane.masks(data.xy[o], theta).items():
             sel = inside & m
             total = sums.setdefault(name, [0.0, 0])
             total[0] += float(squares[o, sel].sum())

@@ -9,6 +9,7 @@ import numpy as np
 
 from inference.criticism.check import CheckResult
 from inference.criticism.diagnosis import STRONG_EVIDENCE
+from inference.criticism.metrics import MembraneRegions
 from inference.plots import field_grid, pyplot, save_figure
 from skinfem.config import THETA
 
@@ -32,9 +33,9 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
             rows,
             titles,
             out,
-            result.half,
+            result.membrane.half,
             float(cal.x[THETA]),
-            window=2 * result.half,
+            window=2 * result.membrane.half,
             suptitle=f"{cal.label}: α = ({obs.alpha[0]:g}, {obs.alpha[1]:g}), t = {obs.t:g}; "
             f"residual RMSE {result.versions[version].metrics.rmse:.2e}",
         )
@@ -42,12 +43,13 @@ def residual_maps(result: CheckResult, version: int, path: Path) -> list[Path]:
     return paths
 
 
-def draw_regions(ax, half: float, band: float, theta: float) -> None:
-    """The membrane (|x|, |y| = ``half`` [mm], dashed), its edge strip (± ``band`` [mm], dotted)
-    and the fiber direction ``theta`` [rad] (cyan) on ``ax``."""
-    for d, style in ((half, "k--"), (half - band, "k:"), (half + band, "k:")):
+def draw_regions(ax, membrane: MembraneRegions, theta: float) -> None:
+    """The membrane (|x|, |y| = ``membrane.half`` [mm], dashed), its edge strip (± ``membrane.band``
+    [mm], dotted) and the fiber direction ``theta`` [rad] (cyan) on ``ax``."""
+    h, b = membrane.half, membrane.band
+    for d, style in ((h, "k--"), (h - b, "k:"), (h + b, "k:")):
         ax.plot([-d, d, d, -d, -d], [-d, -d, d, d, -d], style, lw=1)
-    r = 2.2 * half
+    r = 2.2 * h
     for sign in (1, -1):
         ax.plot([0, sign * r * np.cos(theta)], [0, sign * r * np.sin(theta)], "c-", lw=1, alpha=0.8)
 
@@ -64,8 +66,8 @@ def regions_map(result: CheckResult, version: int, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(7.5, 6))
     im = ax.scatter(xy[:, 0], xy[:, 1], c=per_point, s=6, cmap="magma", vmin=0, vmax=max(3.0, per_point.max()))
     fig.colorbar(im, ax=ax, label="RMS residual / sd [-]  (noise and model error alone: 1)")
-    h = result.half
-    draw_regions(ax, h, result.band, np.radians(v.calibration.x[THETA]))
+    h = result.membrane.half
+    draw_regions(ax, result.membrane, np.radians(v.calibration.x[THETA]))
     if version == 0:
         spot = result.diagnosis.hotspot
         label = f"hotspot: {spot.rms_sigma:.1f} σ over its {spot.points} nearest points"
