@@ -23,6 +23,17 @@
     python benchmarks/paper_mesh.py table --run "max design=out/paper_max_noise" \
         --run "mixed design=benchmarks/results/paper_mesh/noise_paper_mesh" --results benchmarks/results/paper_mesh_max
     python benchmarks/paper_mesh.py coverage --study out/paper_max_noise --results benchmarks/results/paper_mesh_max
+    # 6. the "uniaxial" design (0.05, 0), the paper's third single observation, as step 5
+    mpirun -n 2 skinid sweep --config benchmarks/configs/paper_uniaxial.toml --out out/paper_uniaxial.h5
+    skinid study noise --data out/paper_uniaxial.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
+        --levels 0.01 0.1 --out out/paper_uniaxial_noise
+    python benchmarks/paper_mesh.py table --run "uniaxial design=out/paper_uniaxial_noise" \
+        --run "max design=benchmarks/results/paper_mesh_max/noise_paper_mesh_max" \
+        --run "mixed design=benchmarks/results/paper_mesh/noise_paper_mesh" \
+        --results benchmarks/results/paper_mesh_uniaxial
+    python benchmarks/paper_mesh.py coverage --study out/paper_uniaxial_noise \
+        --results benchmarks/results/paper_mesh_uniaxial
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
@@ -267,7 +278,7 @@ def main() -> None:
     table = side_by_side(runs)
     (args.results / "side_by_side.md").write_text(
         "Median width of the 95 % interval as a share of the prior range / coverage of the truth over "
-        "the test materials (last frame of the mixed design).\n\n" + table + "\n"
+        "the test materials (last frame of each run's design).\n\n" + table + "\n"
     )
     (args.results / "sources.json").write_text(json.dumps(sources, indent=2) + "\n")
     print(table)
