@@ -49,3 +49,17 @@ def test_region_shares_partition_the_information_and_locate_a_local_column(desig
 
 def test_a_design_is_a_name_and_two_eigen_strains(design_information):
     assert design_information.parse_design("mixed=0.05,-0.05") == ("mixed", (0.05, -0.05))
+
+
+def test_medians_over_materials_per_design_and_observable(design_information):
+    def entry(width):
+        share = {"edge band 8-12 mm": dict.fromkeys(design_information.PARAMS, width / 10)}
+        return {"width_95": dict.fromkeys(design_information.PARAMS, width), "region_share": share}
+
+    record = {
+        m: {"mixed": {o: entry(w) for o in design_information.OBSERVABLES}} for m, w in (("centre", 0.1), ("3", 0.3))
+    }
+    summary = design_information.medians(record)
+    assert summary["mixed"]["surface"]["width_95"]["theta"] == pytest.approx(0.2)
+    assert summary["mixed"]["top_cell_average"]["region_share"]["edge band 8-12 mm"]["mu"] == pytest.approx(0.02)
+    assert "| mixed | surface | 0.2 (2%) |" in design_information.table(summary)
