@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.scripts import ROOT, load_script
 
 
 def load_benchmark():
-    spec = importlib.util.spec_from_file_location("criticism_bench", ROOT / "benchmarks" / "criticism.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["criticism_bench"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "benchmarks" / "criticism.py", "criticism_bench")
 
 
 def row(case: str, verdict: str, rank, rmse: float, added, seconds: float) -> dict:

@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.scripts import ROOT, load_script
 
 
 @pytest.fixture(scope="module")
 def design_information():
-    spec = importlib.util.spec_from_file_location("design_information", ROOT / "benchmarks" / "design_information.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["design_information"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "benchmarks" / "design_information.py", "design_information")
 
 
 def test_widths_are_the_least_squares_covariance_in_prior_units(design_information):

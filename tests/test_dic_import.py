@@ -9,10 +9,8 @@ points and log strains to the files' printed precision.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,19 +27,12 @@ from inference.dic_import import (
 )
 from inference.dic_readers import TableOptions, detect_format
 from inference.observations import MeasurementError, read_measurement
+from tests.scripts import load_script
 
 DATA = Path(__file__).parent / "data" / "dic"
 
 
-def _fixtures_module():
-    spec = importlib.util.spec_from_file_location("dic_make_fixtures", DATA / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-MF = _fixtures_module()
+MF = load_script(DATA / "make_fixtures.py", "dic_make_fixtures")
 FIXTURES = MF.FIXTURES
 ALPHA, T = MF.ALPHA, MF.T
 # the files' printed precision: %g (6 digits), DICe %.4E, DaVis 8 displacements 0.0001 px over 12 px

@@ -2,24 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.scripts import ROOT, load_script
 
 
 @pytest.fixture(scope="module")
 def paper_mesh():
-    spec = importlib.util.spec_from_file_location("paper_mesh", ROOT / "benchmarks" / "paper_mesh.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["paper_mesh"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "benchmarks" / "paper_mesh.py", "paper_mesh")
 
 
 def graded_grid(n: int = 62) -> np.ndarray:
