@@ -53,6 +53,14 @@ def model_inputs(params, alpha, t) -> np.ndarray:
     return np.column_stack([params, alpha * t[:, None]])
 
 
+def unit_span(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The width of the inputs' box per input, used to scale it to the unit box; 1 for an input
+    constant over the training rows (alpha22 t of a uniaxial design alone), which then scales
+    to 0 like every training row instead of 0 / 0."""
+    span = np.asarray(upper, dtype=float) - np.asarray(lower, dtype=float)
+    return np.where(span > 0, span, 1.0)
+
+
 @dataclass(frozen=True)
 class TrainingRows:
     """Rows (material, design, frame) of a dataset and their inputs and fields."""
@@ -248,7 +256,7 @@ class Emulator:
     # -- prediction ----------------------------------------------------------------------
     def scale(self, x):
         """Raw inputs (B, 7) -> unit box (numpy or torch)."""
-        lower, span = self.lower, self.upper - self.lower
+        lower, span = self.lower, unit_span(self.lower, self.upper)
         if isinstance(x, torch.Tensor):
             lower = torch.as_tensor(lower, dtype=x.dtype, device=x.device)
             span = torch.as_tensor(span, dtype=x.dtype, device=x.device)
@@ -271,7 +279,7 @@ class Emulator:
         """(G, n, n) correlation of one material's emulator error between n observations with raw
         design inputs (alpha11 t, alpha22 t) (n, 2) (:func:`surrogate.error_model.design_correlation`)."""
         lower, upper = self.lower[5:], self.upper[5:]
-        return design_correlation(self.gps, (np.asarray(design_inputs) - lower) / (upper - lower))
+        return design_correlation(self.gps, (np.asarray(design_inputs) - lower) / unit_span(lower, upper))
 
     def predict_fields(self, params, alpha, t) -> np.ndarray:
         """Mean strain fields (B, n_cells, n_comp) for params (B, 5), alpha (2,) or (B, 2), t."""
@@ -407,13 +415,13 @@ def _cross_validated_excess(
     bank = GPBank.from_sklearn(gps)
     return cross_validated_excess(
         fold_refit(gps, seed, n_jobs),
-        (rows.inputs - lower) / (upper - lower),
+        (rows.inputs - lower) / unit_span(lower, upper),
         weights,
         rows.index[:, 0],
         rows.inputs[:, 5:],
         subset,
         rows.index[:, 2] == rows.index[:, 2].max(),
-        lambda design: design_correlation(bank, (design - lower[5:]) / (upper[5:] - lower[5:])),
+        lambda design: design_correlation(bank, (design - lower[5:]) / unit_span(lower[5:], upper[5:])),
         folds,
         seed,
     )
@@ -458,7 +466,7 @@ def fit_emulator(
     lower = np.concatenate([data.lower, rows.inputs[:, 5:].min(0)])
     upper = np.concatenate([data.upper, rows.inputs[:, 5:].max(0)])
     subset = gp_rows(len(rows.index), gp_fraction, max_gp_rows, seed)
-    x_unit = (rows.inputs[subset] - lower) / (upper - lower)
+    x_unit = (rows.inputs[subset] - lower) / unit_span(lower, upper)
     pca_seconds = time.perf_counter() - start
     gps = fit_gps(x_unit, weights[subset], restarts=restarts, seed=seed, n_jobs=n_jobs)
     cv_start = time.perf_counter()

@@ -258,3 +258,33 @@ def test_corrupt_array_files_are_one_value_error_naming_the_file(tiny_emulator, 
     with pytest.raises(ValueError, match=re.escape(f"'{directory / name}' is truncated or corrupt")) as info:
         Emulator.load(directory)
     assert "\n" not in str(info.value)
+
+
+def test_an_emulator_of_a_uniaxial_design_alone_fits_and_predicts(tmp_path):
+    """alpha22 t is 0 in every training row of the design (0.05, 0): its input box has no width.
+    It scales to 0 (not 0 / 0 = NaN, which the GP refused), and the predictions at the design
+    follow the fields."""
+    from skinfem.config import load_config
+    from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
+    from skinfem.sweep import latin_hypercube
+    from surrogate.emulator import fit_emulator
+
+    config = load_config("small").with_changes(sweep={"n_materials": 16, "n_test": 2, "designs": [[0.05, 0.0]]})
+    params = latin_hypercube(config.sweep.box, 16, seed=1)
+    t = np.arange(1, 6) / 5
+    xy = np.random.default_rng(4).uniform(-20, 20, size=(30, 2))
+    path = tmp_path / "uniaxial.h5"
+    split = np.isin(np.arange(16), [3, 6]).astype(np.int8)
+    create_dataset(path, config, params, np.array([[0.05, 0.0]]), t, xy, np.ones(30), split, "0" * 64)
+
+    def field(p):  # (frames, cells, 3): linear in mu and in the load
+        pattern = np.stack([np.cos(xy[:, 0] / 7), np.sin(xy[:, 1] / 5), xy[:, 0] * xy[:, 1] / 400], -1)
+        return 0.05 * t[:, None, None] * pattern * p[0] / 1e-3
+
+    for i, p in enumerate(params):
+        write_simulation(path, i, 0, field(p), STATUS_OK)
+    emulator = fit_emulator(StrainDataset.open(path), gp_fraction=1.0, restarts=0, seed=0, cv_folds=3)
+    predicted = emulator.predict_fields(params[[3, 6]], (0.05, 0.0), 1.0)
+    truth = np.stack([field(params[i])[-1][:, :2] for i in (3, 6)])
+    assert np.all(np.isfinite(predicted))
+    assert np.abs(predicted - truth).max() < 0.05 * np.abs(truth).max()
