@@ -48,18 +48,12 @@ class Information:
         width_95: 95 % Cramér–Rao width / prior range per parameter from the whole field
             (E_xx, E_yy, E_xy of every cell; white noise of ``noise_sd``).
         width_95_xx_yy: the same from E_xx and E_yy only (the emulators' components).
-        width_95_pcs: the same from the weights of the principal components that keep 99 % of
-            a dataset's variance (per-cell standardised, as the emulators'); None without a
-            dataset, or when its weights cannot determine the parameters (rank below 5).
-        n_pcs: the number of those components for E_xx and E_yy.
         region_share: per region, its share of each parameter's information diagonal (whole field).
         noise_sd: σ of the white noise on every cell and component [-].
     """
 
     width_95: dict[str, float]
     width_95_xx_yy: dict[str, float]
-    width_95_pcs: dict[str, float] | None
-    n_pcs: list[int] | None
     region_share: dict[str, dict[str, float]]
     noise_sd: float
 
@@ -69,30 +63,7 @@ def widths(fisher: np.ndarray) -> dict[str, float]:
     return dict(zip(PARAMS, (2 * 1.96 * np.sqrt(np.diag(np.linalg.inv(fisher)))).tolist(), strict=True))
 
 
-def _determined(fisher: np.ndarray) -> dict[str, float] | None:
-    """:func:`widths`, or None when the Fisher matrix is singular (fewer data than parameters)."""
-    return widths(fisher) if np.linalg.matrix_rank(fisher) == len(PARAMS) else None
-
-
-def pc_fisher(scaled: np.ndarray, pcas: list, noise_sd: float) -> np.ndarray:
-    """Fisher matrix (5, 5) of the PC weights of E_xx and E_yy: weights w = Φ (f − mean) / scale
-    per cell, so white field noise of sd σ has covariance σ² (Φ/scale)(Φ/scale)ᵀ in w.
-
-    Args:
-        scaled: (n_cells, 3, 5) the Jacobian per prior range.
-        pcas: the fitted :class:`surrogate.pca.StrainPCA` of E_xx and E_yy.
-    """
-    fisher = np.zeros((len(PARAMS), len(PARAMS)))
-    for component, pca in enumerate(pcas):
-        projector = pca.components_ / pca.scale_  # (M, n_cells)
-        weights = projector @ scaled[:, component, :]
-        fisher += weights.T @ np.linalg.solve(noise_sd**2 * projector @ projector.T, weights)
-    return fisher
-
-
-def information(
-    jacobian: np.ndarray, ring: np.ndarray, prior_range: np.ndarray, noise_sd: float, pcas: list | None = None
-) -> Information:
+def information(jacobian: np.ndarray, ring: np.ndarray, prior_range: np.ndarray, noise_sd: float) -> Information:
     """The Cramér–Rao widths and regional shares of a field's Jacobian.
 
     Args:
@@ -100,7 +71,6 @@ def information(
         ring: (n_cells,) max(|x|, |y|) of each cell centre [mm].
         prior_range: (5,) width of each parameter's prior box [its units].
         noise_sd: white noise sd on every cell and component [-].
-        pcas: the principal components of E_xx and E_yy of a dataset of this design, or None.
     """
     scaled = jacobian * prior_range  # per prior range: the widths come out as shares of it
     flat, xx_yy = scaled.reshape(-1, len(PARAMS)), scaled[:, :2].reshape(-1, len(PARAMS))
@@ -113,8 +83,6 @@ def information(
     return Information(
         width_95=widths(flat.T @ flat / noise_sd**2),
         width_95_xx_yy=widths(xx_yy.T @ xx_yy / noise_sd**2),
-        width_95_pcs=None if pcas is None else _determined(pc_fisher(scaled, pcas, noise_sd)),
-        n_pcs=None if pcas is None else [pca.n_components_ for pca in pcas],
         region_share=share,
         noise_sd=noise_sd,
     )
@@ -174,41 +142,23 @@ def materials(config, spec: str) -> dict[str, np.ndarray]:
     return {name: plan.bounds.mean(axis=1) if name == "centre" else plan.params[int(name)] for name in spec.split(",")}
 
 
-def dataset_pcas(path: Path, xy: np.ndarray) -> list:
-    """The principal components (99 % of the variance) of E_xx and E_yy of a dataset's training
-    materials, all frames, as the emulators fit them; its cells must be ``xy`` (n_cells, 2)."""
-    from skinfem.io import StrainDataset
-    from surrogate.emulator import TrainingRows
-    from surrogate.pca import StrainPCA
-
-    data = StrainDataset.open(path)
-    if data.observable != "surface" or not np.allclose(data.xy, xy):
-        raise SystemExit(f"{path}: not a surface-strain dataset on the cells of the Jacobians")
-    rows = TrainingRows.from_dataset(data, np.flatnonzero(data.split == 0))
-    return [StrainPCA(0.99).fit(rows.fields[..., k]) for k in (0, 1)]
-
-
-def summarise(config, tasks: dict[tuple[str, str], Path], noise_sd: float, datasets: dict[str, Path]) -> dict:
-    """Per material, design and observable: the information (:class:`Information`, in the PCs
-    of ``datasets[design]`` for the surface strain where given) and the field's RMS [-]."""
+def summarise(config, tasks: dict[tuple[str, str], Path], noise_sd: float) -> dict:
+    """Per material, design and observable: the information (:class:`Information`) and the
+    field's RMS [-]."""
     box = config.sweep.box
     record: dict = {}
-    pcas: dict[str, list] = {}
     for (material, design), path in tasks.items():
         with np.load(path) as f:
             ring = np.abs(f["xy"]).max(axis=1)
-            if design in datasets and design not in pcas:
-                pcas[design] = dataset_pcas(datasets[design], f["xy"])
             for name in OBSERVABLES:
-                seen_by = pcas.get(design) if name == "surface" else None
-                info = information(f[f"jacobian_{name}"], ring, box[:, 1] - box[:, 0], noise_sd, seen_by)
+                info = information(f[f"jacobian_{name}"], ring, box[:, 1] - box[:, 0], noise_sd)
                 entry = record.setdefault(material, {}).setdefault(design, {})
                 entry[name] = {**asdict(info), "field_rms": float(np.sqrt(np.mean(f[f"field_{name}"] ** 2)))}
                 entry["seconds"] = float(f["seconds"])
     return record
 
 
-WIDTHS = {"width_95": "E_xx, E_yy, E_xy", "width_95_xx_yy": "E_xx, E_yy", "width_95_pcs": "their 99 % PCs"}
+WIDTHS = {"width_95": "E_xx, E_yy, E_xy", "width_95_xx_yy": "E_xx, E_yy"}
 
 
 def medians(record: dict) -> dict:
@@ -219,11 +169,7 @@ def medians(record: dict) -> dict:
     for design in designs:
         for name in OBSERVABLES:
             entries = [record[m][design][name] for m in record]
-            median = {
-                key: {p: float(np.median([e[key][p] for e in entries])) for p in PARAMS}
-                for key in WIDTHS
-                if all(e.get(key) is not None for e in entries)
-            }
+            median = {key: {p: float(np.median([e[key][p] for e in entries])) for p in PARAMS} for key in WIDTHS}
             median["region_share"] = {
                 region: {p: float(np.median([e["region_share"][region][p] for e in entries])) for p in PARAMS}
                 for region in entries[0]["region_share"]
@@ -241,10 +187,9 @@ def table(summary: dict) -> str:
         for name, entry in observables.items():
             band = entry["region_share"].get("edge band 8-12 mm", {})
             for key, kept in WIDTHS.items():
-                if key in entry:
-                    suffix = {p: f" ({band.get(p, 0.0):.0%})" if key == "width_95" else "" for p in PARAMS}
-                    cells = " | ".join(f"{entry[key][p]:.3g}{suffix[p]}" for p in PARAMS)
-                    lines.append(f"| {design} | {name} | {kept} | {cells} |")
+                suffix = {p: f" ({band.get(p, 0.0):.0%})" if key == "width_95" else "" for p in PARAMS}
+                cells = " | ".join(f"{entry[key][p]:.3g}{suffix[p]}" for p in PARAMS)
+                lines.append(f"| {design} | {name} | {kept} | {cells} |")
     return "\n".join(lines)
 
 
@@ -263,7 +208,6 @@ def main() -> None:
     parser.add_argument("--designs", nargs="+", default=["max=0.05,0.05", "mixed=0.05,-0.05", "uniaxial=0.05,0"])
     parser.add_argument("--step", type=float, default=1e-3, help="difference step / prior range")
     parser.add_argument("--noise-sd", type=float, default=1e-3)
-    parser.add_argument("--pca-data", nargs="*", default=[], help="DESIGN=DATASET: also the information in its PCs")
     parser.add_argument("--out", type=Path, default=Path("out/design_information"))
     parser.add_argument("--results", type=Path, default=HERE / "results" / "design_information.json")
     args = parser.parse_args()
@@ -280,13 +224,11 @@ def main() -> None:
             solve_task(config, x, alpha, args.step, path)
     comm.barrier()
     if comm.rank == 0:
-        datasets = {design: Path(path) for design, _, path in (spec.partition("=") for spec in args.pca_data)}
-        record = summarise(config, {key: path for key, (_, _, path) in tasks.items()}, args.noise_sd, datasets)
+        record = summarise(config, {key: path for key, (_, _, path) in tasks.items()}, args.noise_sd)
         results = json.loads(args.results.read_text()) if args.results.exists() else {}
         command = (
             f"mpirun -n {comm.size} python benchmarks/design_information.py --config {args.config} "
-            + (f"--materials {args.materials} --noise-sd {args.noise_sd:g} --step {args.step:g}")
-            + "".join(f" --pca-data {spec}" for spec in args.pca_data)
+            f"--materials {args.materials} --noise-sd {args.noise_sd:g} --step {args.step:g}"
         )
         summary = medians(record)
         results[args.config] = {"command": command, "median_over_materials": summary, "materials": record}

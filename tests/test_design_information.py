@@ -47,7 +47,7 @@ def test_medians_over_materials_per_design_and_observable(design_information):
     def entry(width):
         share = {"edge band 8-12 mm": dict.fromkeys(design_information.PARAMS, width / 10)}
         widths = dict.fromkeys(design_information.PARAMS, width)
-        return {"width_95": widths, "width_95_xx_yy": widths, "width_95_pcs": None, "region_share": share}
+        return {"width_95": widths, "width_95_xx_yy": widths, "region_share": share}
 
     record = {
         m: {"mixed": {o: entry(w) for o in design_information.OBSERVABLES}} for m, w in (("centre", 0.1), ("3", 0.3))
@@ -56,28 +56,3 @@ def test_medians_over_materials_per_design_and_observable(design_information):
     assert summary["mixed"]["surface"]["width_95"]["theta"] == pytest.approx(0.2)
     assert summary["mixed"]["top_cell_average"]["region_share"]["edge band 8-12 mm"]["mu"] == pytest.approx(0.02)
     assert "| mixed | surface | E_xx, E_yy, E_xy | 0.2 (2%) |" in design_information.table(summary)
-
-
-def test_the_pc_weights_keep_all_the_information_of_a_complete_basis_and_lose_some_of_a_truncated_one(
-    design_information,
-):
-    """Weights in a complete orthonormal basis, per-cell standardised, are an invertible map of
-    E_xx and E_yy: the same widths; the leading half of the basis gives wider ones."""
-    from types import SimpleNamespace
-
-    rng = np.random.default_rng(2)
-    n = 60
-    jacobian = rng.normal(size=(n, 3, 5))
-
-    def basis(m):
-        q = np.linalg.qr(rng.normal(size=(n, n)))[0]
-        return [SimpleNamespace(components_=q[:m].copy(), scale_=rng.uniform(0.5, 2.0, n), n_components_=m)] * 2
-
-    complete = design_information.information(jacobian, np.zeros(n), np.ones(5), 1e-3, basis(n))
-    for p in design_information.PARAMS:
-        assert complete.width_95_pcs[p] == pytest.approx(complete.width_95_xx_yy[p], rel=1e-8)
-        assert complete.width_95_xx_yy[p] >= complete.width_95[p]
-    truncated = design_information.information(jacobian, np.zeros(n), np.ones(5), 1e-3, basis(n // 2))
-    assert all(truncated.width_95_pcs[p] > truncated.width_95_xx_yy[p] for p in design_information.PARAMS)
-    assert truncated.n_pcs == [n // 2, n // 2]
-    assert design_information.information(jacobian, np.zeros(n), np.ones(5), 1e-3, basis(2)).width_95_pcs is None
