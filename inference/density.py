@@ -41,7 +41,7 @@ class FusedLogDensity:
         self.scaled_train_sq = bank.scaled_train_sq.cpu().numpy()  # (G, n): |x_train / l|^2
         if posterior.gp_variance != "mode":
             raise ValueError("the closed form covers gp_variance='mode'; 'exact' uses autograd")
-        self.in_lower, self.in_span = emu.lower, emu.upper - emu.lower
+        self.in_lower, self.in_span = emu.lower, emu.input_span
         self.lower, self.span = posterior.lower.numpy(), posterior.span.numpy()
         self.design_unit = (posterior.design_inputs.numpy() - self.in_lower[5:]) / self.in_span[5:]  # (n_obs, 2)
         self.param_scale = self.span / self.in_span[:5]  # d(unit input) / dz

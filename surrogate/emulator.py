@@ -253,10 +253,15 @@ class Emulator:
         """(5, 2) the parameter box the emulator was trained on (theta in degrees)."""
         return np.stack([self.lower[:5], self.upper[:5]], 1)
 
+    @property
+    def input_span(self) -> np.ndarray:
+        """(7,) the width the inputs are scaled by (:func:`unit_span` of the training box)."""
+        return unit_span(self.lower, self.upper)
+
     # -- prediction ----------------------------------------------------------------------
     def scale(self, x):
         """Raw inputs (B, 7) -> unit box (numpy or torch)."""
-        lower, span = self.lower, unit_span(self.lower, self.upper)
+        lower, span = self.lower, self.input_span
         if isinstance(x, torch.Tensor):
             lower = torch.as_tensor(lower, dtype=x.dtype, device=x.device)
             span = torch.as_tensor(span, dtype=x.dtype, device=x.device)
@@ -278,8 +283,7 @@ class Emulator:
     def error_correlation(self, design_inputs: np.ndarray) -> np.ndarray:
         """(G, n, n) correlation of one material's emulator error between n observations with raw
         design inputs (alpha11 t, alpha22 t) (n, 2) (:func:`surrogate.error_model.design_correlation`)."""
-        lower, upper = self.lower[5:], self.upper[5:]
-        return design_correlation(self.gps, (np.asarray(design_inputs) - lower) / unit_span(lower, upper))
+        return design_correlation(self.gps, (np.asarray(design_inputs) - self.lower[5:]) / self.input_span[5:])
 
     def predict_fields(self, params, alpha, t) -> np.ndarray:
         """Mean strain fields (B, n_cells, n_comp) for params (B, 5), alpha (2,) or (B, 2), t."""

@@ -260,10 +260,16 @@ def test_corrupt_array_files_are_one_value_error_naming_the_file(tiny_emulator, 
     assert "\n" not in str(info.value)
 
 
-def test_an_emulator_of_a_uniaxial_design_alone_fits_and_predicts(tmp_path):
+def test_an_emulator_of_a_uniaxial_design_alone_fits_predicts_and_gives_a_posterior(tmp_path):
     """alpha22 t is 0 in every training row of the design (0.05, 0): its input box has no width.
-    It scales to 0 (not 0 / 0 = NaN, which the GP refused), and the predictions at the design
-    follow the fields."""
+    It scales to 0 (not 0 / 0 = NaN, which the GP refused and which made NUTS fail on the
+    posterior's closed-form density), the predictions at the design follow the fields, and the
+    closed-form log density is finite and equals autograd's."""
+    import torch
+
+    from inference.density import FusedLogDensity
+    from inference.model import ObservedWeights, SkinPosterior
+    from inference.observations import from_dataset
     from skinfem.config import load_config
     from skinfem.io import STATUS_OK, StrainDataset, create_dataset, write_simulation
     from skinfem.sweep import latin_hypercube
@@ -288,3 +294,9 @@ def test_an_emulator_of_a_uniaxial_design_alone_fits_and_predicts(tmp_path):
     truth = np.stack([field(params[i])[-1][:, :2] for i in (3, 6)])
     assert np.all(np.isfinite(predicted))
     assert np.abs(predicted - truth).max() < 0.05 * np.abs(truth).max()
+    data = StrainDataset.open(path)
+    posterior = SkinPosterior(emulator, ObservedWeights.project(emulator, from_dataset(data, 3)), gp_variance="mode")
+    posterior.fix_gp_variance(params[3])
+    u = np.random.default_rng(5).normal(size=posterior.dim)
+    value, _ = FusedLogDensity(posterior)(u)
+    assert np.isfinite(value) and value == pytest.approx(float(posterior.log_density(torch.tensor(u))), rel=1e-8)
