@@ -91,7 +91,12 @@ def information(jacobian: np.ndarray, ring: np.ndarray, prior_range: np.ndarray,
 def last_fields(model, cell_average, params, design) -> dict[str, np.ndarray]:
     """The last frame's (n_cells, 3) surface strain and cell-average strain of one simulation."""
     seen = {}
-    frames = model.simulate(params, design, on_frame=lambda t: seen.update(top_cell_average=cell_average()))
+
+    def at_last_frame(t: float) -> None:
+        if t == 1.0:
+            seen["top_cell_average"] = cell_average()
+
+    frames = model.simulate(params, design, on_frame=at_last_frame)
     return {"surface": frames.strain[-1], **seen}
 
 
