@@ -181,7 +181,7 @@ def _noise_study(args, data) -> None:
         tuple(args.lengths),
         tuple(args.levels),
         int_list(args.materials, "--materials"),
-        {"gp_fraction": args.gp_fraction, "restarts": args.restarts},
+        {"gp_fraction": args.gp_fraction, "restarts": args.restarts, "pca_scaling": args.pca_scaling},
     )
     print(f"wrote {args.out}/README.md")
 

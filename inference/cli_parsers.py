@@ -269,6 +269,13 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
+    p.add_argument(
+        "--pca-scaling",
+        choices=["cell", "none"],
+        default="cell",
+        help="per-cell standardisation before the PCA (cell: the paper's) or none (strain units: "
+        "noise keeps its size in the weights, and the field's information survives noise; docs/surrogate.md)",
+    )
     _study_outputs(p, "subset of test materials (default: the test split)")
 
 

@@ -326,6 +326,7 @@ def noise_study(
             },
             n_components=dict(emulator.n_weights),
             r2_per_pc={c: [float(v) for v in r.r2_per_pc] for c, r in report.components.items()},
+            pca_scaling=emulator.pca_scaling,
         )
     write_text(out / "noise_study.json", json.dumps({n: c.to_json() for n, c in results.items()}, indent=2) + "\n")
     explained_variance_plot(results, out / "explained_variance.png")
@@ -353,6 +354,8 @@ class NoiseCase:
         explained_variance: per component, the cumulative explained variance of the first 12 PCs [-].
         n_components: per component, the PCs the case's emulator keeps.
         r2_per_pc: per component, the GPs' R² per PC on the held-out materials [-].
+        pca_scaling: the PCA's per-cell scaling, "cell" or "none" (:mod:`surrogate.pca`);
+            "cell" in files written before it was recorded.
     """
 
     data: str | None
@@ -362,6 +365,7 @@ class NoiseCase:
     explained_variance: dict[str, list[float]]
     n_components: dict[str, int]
     r2_per_pc: dict[str, list[float]]
+    pca_scaling: str = "cell"
 
     @classmethod
     def from_json(cls, d: dict) -> NoiseCase:
@@ -374,6 +378,7 @@ class NoiseCase:
             explained_variance=d["explained_variance"],
             n_components=d["n_components"],
             r2_per_pc=d["r2_per_pc"],
+            pca_scaling=d.get("pca_scaling", "cell"),
         )
 
     def to_json(self) -> dict:
@@ -385,6 +390,7 @@ class NoiseCase:
             "explained_variance": self.explained_variance,
             "n_components": self.n_components,
             "r2_per_pc": self.r2_per_pc,
+            "pca_scaling": self.pca_scaling,
             "study": self.study.to_json(),
         }
 
@@ -399,7 +405,14 @@ def _case_emulator(data: StrainDataset, folder: Path, fit_options: dict) -> Emul
     from surrogate.emulator import fit_emulator
 
     if (folder / "meta.json").exists():
-        return Emulator.load(folder)
+        emulator = Emulator.load(folder)
+        wanted = fit_options.get("pca_scaling", "cell")
+        if emulator.pca_scaling != wanted:
+            raise ValueError(
+                f"{folder} holds an emulator with PCA scaling '{emulator.pca_scaling}', not '{wanted}': "
+                "write this study to another folder"
+            )
+        return emulator
     emulator = fit_emulator(data, **fit_options)
     emulator.save(folder)
     return emulator
@@ -493,7 +506,9 @@ def write_noise_report(results: dict[str, NoiseCase], out: Path) -> Path:
         "Each case adds zero-mean GP noise (RBF kernel, length scale ℓ, amplitude = level × max |strain| "
         "of the training data) to every frame, refits PCA and GPs on the training materials only and "
         "samples the posterior of every test material from the last frame of one design. Noisy cases "
-        "keep the clean case's number of PCs M, so the explained variance at M shows what noise takes.",
+        "keep the clean case's number of PCs M, so the explained variance at M shows what noise takes. "
+        f"PCA scaling: {next(iter(results.values())).pca_scaling} (cell: per-cell standardisation, the paper's; "
+        "none: strain units).",
         "",
         "![explained variance](explained_variance.png)",
         "",

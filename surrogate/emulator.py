@@ -249,6 +249,11 @@ class Emulator:
         return out
 
     @property
+    def pca_scaling(self) -> str:
+        """The PCAs' per-cell scaling: "cell" (standardised, the paper's) or "none" (:mod:`surrogate.pca`)."""
+        return next(iter(self.pcas.values())).scaling
+
+    @property
     def param_bounds(self) -> np.ndarray:
         """(5, 2) the parameter box the emulator was trained on (theta in degrees)."""
         return np.stack([self.lower[:5], self.upper[:5]], 1)
@@ -435,6 +440,7 @@ def fit_emulator(
     data: StrainDataset,
     components: tuple[str, ...] = ("xx", "yy"),
     n_components: int | float = 0.99,
+    pca_scaling: str = "cell",
     gp_fraction: float = 0.1,
     max_gp_rows: int | None = None,
     restarts: int = 2,
@@ -447,6 +453,8 @@ def fit_emulator(
     Only the dataset's training materials (``split == 0``) are used.
 
     Args:
+        pca_scaling: "cell" (per-cell standardisation, the paper's) or "none" (strain units:
+            noise keeps its size in the weights; :mod:`surrogate.pca`).
         gp_fraction: share of the training rows the GPs are fitted on (paper: 0.1).
         max_gp_rows: cap on the number of GP rows (exact GP cost grows as rows^3).
         cv_folds: folds of training materials of the error model's cross-validation (as many
@@ -464,7 +472,7 @@ def fit_emulator(
     rows = TrainingRows.from_dataset(data, train)
     material_folds(rows.index[:, 0], cv_folds)  # too few materials for the folds: refused before the fit
     cols = [COMPONENTS.index(c) for c in components]
-    pcas = {c: StrainPCA(n_components).fit(rows.fields[..., k]) for c, k in zip(components, cols)}
+    pcas = {c: StrainPCA(n_components, pca_scaling).fit(rows.fields[..., k]) for c, k in zip(components, cols)}
     weights = np.concatenate([pcas[c].transform(rows.fields[..., k]) for c, k in zip(components, cols)], 1)
 
     lower = np.concatenate([data.lower, rows.inputs[:, 5:].min(0)])

@@ -1,9 +1,18 @@
 """Principal components of strain fields, one strain component at a time.
 
-Each field (one row: the n_cells values of E_xx, say) is standardised per cell with the
-training data's mean and standard deviation (as in the paper), then projected on the leading
+Each field (one row: the n_cells values of E_xx, say) is centred with the training data's
+mean per cell and, with ``scaling="cell"`` (the paper's), divided by its standard deviation per
+cell; with ``scaling="none"`` it stays in strain units. It is then projected on the leading
 principal directions. ``n_components`` is an int (fixed M) or a float in (0, 1): the smallest
 M whose cumulative explained variance reaches it.
+
+The scaling decides what noise does to the weights. Cells whose strain barely changes between
+materials (under the membrane the surface strain is ln(1 + alpha) whatever the skin) get a tiny
+sd, so per-cell scaling amplifies a measurement's noise there and the retained weights carry a
+tenth of the field's information at 1 % noise on the paper mesh; unscaled, the same number of
+PCs keeps nearly all of it, and white noise of sd sigma on every cell is white noise of sd sigma
+on every weight (the components are orthonormal) -- the likelihood's noise model
+(``benchmarks/information_loss.py``; docs/paper-comparison.md).
 """
 
 from __future__ import annotations
@@ -13,6 +22,10 @@ import numpy as np
 
 class StrainPCA:
     """PCA of standardised fields (scikit-learn style: ``fit``/``transform``/``inverse_transform``).
+
+    Args:
+        n_components: M (int) or the explained variance to reach (float in (0, 1)).
+        scaling: "cell" (per-cell sd, the paper's) or "none" (strain units; ``scale_`` is 1).
 
     Fitted attributes:
         mean_, scale_: (n_cells,) per-cell centring and scaling [strain].
@@ -29,8 +42,13 @@ class StrainPCA:
 
     N_DISCARDED = 20
 
-    def __init__(self, n_components: int | float = 0.99):
+    SCALINGS = ("cell", "none")
+
+    def __init__(self, n_components: int | float = 0.99, scaling: str = "cell"):
+        if scaling not in self.SCALINGS:
+            raise ValueError(f"PCA scaling must be one of {self.SCALINGS}, got '{scaling}'")
         self.n_components = n_components
+        self.scaling = scaling
 
     def fit(self, fields: np.ndarray) -> StrainPCA:
         """Fit on training fields (n_rows, n_cells)."""
@@ -40,7 +58,7 @@ class StrainPCA:
         if not np.all(np.isfinite(fields)):
             raise ValueError("fields contain NaN or inf (failed simulations must be dropped first)")
         self.mean_ = fields.mean(axis=0)
-        scale = fields.std(axis=0)
+        scale = fields.std(axis=0) if self.scaling == "cell" else np.ones(fields.shape[1])
         self.scale_ = np.where(scale > 1e-12 * max(scale.max(), 1e-300), scale, 1.0)
         z = (fields - self.mean_) / self.scale_
         _, s, vt = np.linalg.svd(z, full_matrices=False)
@@ -112,6 +130,7 @@ class StrainPCA:
         pca.components_ = np.asarray(arrays[f"{prefix}components"])
         pca.explained_variance_ratio_ = np.asarray(arrays[f"{prefix}explained_variance_ratio"])
         pca.n_components_ = len(pca.components_)
+        pca.scaling = "none" if np.all(pca.scale_ == 1.0) else "cell"
         if f"{prefix}discarded_components" in arrays:
             pca.discarded_components_ = np.asarray(arrays[f"{prefix}discarded_components"])
             pca.discarded_variance_ = np.asarray(arrays[f"{prefix}discarded_variance"])
