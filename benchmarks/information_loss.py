@@ -212,7 +212,8 @@ def main() -> None:
     parser.add_argument("--results", type=Path, default=Path("benchmarks/results/information_loss.json"))
     args = parser.parse_args()
     results = json.loads(args.results.read_text()) if args.results.exists() else {}
-    key = f"{args.design}, {args.observable}"
+    cases = json.loads((args.study / "noise_study.json").read_text())
+    key = f"{args.design}, {args.observable}, PCA scaling {cases[args.cases[0]].get('pca_scaling', 'cell')}"
     entry = {}
     for name in args.cases:
         case = args.study / "cases" / name

@@ -34,6 +34,19 @@
         --results benchmarks/results/paper_mesh_uniaxial
     python benchmarks/paper_mesh.py coverage --study out/paper_uniaxial_noise \
         --results benchmarks/results/paper_mesh_uniaxial
+    # 7. the PCA in strain units (--pca-scaling none) instead of standardised per cell: the uniaxial
+    #    design's study again, and where each study loses the field's information
+    #    (benchmarks/information_loss.py, from design_information.py's Jacobians)
+    skinid study noise --data out/paper_uniaxial.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
+        --levels 0.01 0.1 --pca-scaling none --out out/paper_uniaxial_noise_unscaled
+    python benchmarks/paper_mesh.py table --run "unscaled PCA=out/paper_uniaxial_noise_unscaled" \
+        --run "standardised PCA=benchmarks/results/paper_mesh_uniaxial/noise_paper_mesh_uniaxial" \
+        --results benchmarks/results/paper_mesh_unscaled
+    python benchmarks/paper_mesh.py coverage --study out/paper_uniaxial_noise_unscaled \
+        --results benchmarks/results/paper_mesh_unscaled
+    python benchmarks/information_loss.py --study out/paper_uniaxial_noise --design uniaxial
+    python benchmarks/information_loss.py --study out/paper_uniaxial_noise_unscaled --design uniaxial
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the

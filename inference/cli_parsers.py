@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from skinfem.cli import CommandParser, add_design, add_output, add_renamed_option
+from skinfem.cli import CommandParser, add_design, add_output, add_pca_scaling, add_renamed_option
 from skinfem.mesh import DEFAULT_MESH_DIR
 
 
@@ -269,13 +269,7 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
-    p.add_argument(
-        "--pca-scaling",
-        choices=["cell", "none"],
-        default="cell",
-        help="per-cell standardisation before the PCA (cell: the paper's) or none (strain units: "
-        "noise keeps its size in the weights, and the field's information survives noise; docs/surrogate.md)",
-    )
+    add_pca_scaling(p)
     _study_outputs(p, "subset of test materials (default: the test split)")
 
 

@@ -70,6 +70,17 @@ def add_design(parser: argparse.ArgumentParser, help: str, *, required: bool = F
     parser.add_argument("--alpha", type=float, nargs=2, required=required, metavar=("A11", "A22"), help=help)
 
 
+def add_pca_scaling(parser: argparse.ArgumentParser) -> None:
+    """``--pca-scaling cell|none``: the PCA's per-cell scaling (:mod:`surrogate.pca`)."""
+    parser.add_argument(
+        "--pca-scaling",
+        choices=["cell", "none"],
+        default="cell",
+        help="per-cell standardisation before the PCA (cell: the paper's) or none (strain units: "
+        "noise keeps its size in the weights, and the field's information survives noise; docs/surrogate.md)",
+    )
+
+
 def add_output(parser: argparse.ArgumentParser, what: str, *, resumable: bool = False, replaces: str = "--out") -> None:
     """``--out`` (``what`` it is) and ``--force``; also ``--resume`` for an output that keeps
     finished work (see :mod:`skinfem.outputs`)."""

@@ -6,7 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-from skinfem.cli import CommandParser, add_output, refuse
+from skinfem.cli import CommandParser, add_output, add_pca_scaling, refuse
 
 
 def build_parser() -> CommandParser:
@@ -21,13 +21,7 @@ def build_parser() -> CommandParser:
     group = p.add_mutually_exclusive_group()
     group.add_argument("--variance", type=float, default=0.99, help="explained variance to keep")
     group.add_argument("--n-components", type=int, help="fixed number of PCs per component")
-    p.add_argument(
-        "--pca-scaling",
-        choices=["cell", "none"],
-        default="cell",
-        help="per-cell standardisation before the PCA (cell: the paper's) or none (strain units: "
-        "noise keeps its size in the weights, and the field's information survives noise; docs/surrogate.md)",
-    )
+    add_pca_scaling(p)
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs (paper: 0.1)")
     p.add_argument("--max-gp-rows", type=int, help="cap on GP training rows")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
