@@ -110,3 +110,23 @@ def test_other_format_versions_are_refused(emulator, tmp_path):
         Emulator.load(tmp_path)
     res = skinid("surrogate", "validate", "--emulator", tmp_path)
     assert res.returncode == 2 and "not an emulator" in res.stderr
+
+
+def test_an_unscaled_pca_emulator_predicts_held_out_materials_and_keeps_its_scaling(small_dataset, tmp_path):
+    """--pca-scaling none: the PCA in strain units (scale 1), held-out materials predicted as
+    well as by the standardised emulator, the scaling kept through save and load, and a noise
+    study refuses to reuse a case folder fitted with the other scaling."""
+    from inference.studies import _case_emulator
+    from surrogate.emulator import fit_emulator
+
+    data = StrainDataset.open(small_dataset)
+    emulator = fit_emulator(data, pca_scaling="none", gp_fraction=0.5, restarts=1, seed=0)
+    assert all(np.array_equal(p.scale_, np.ones(len(data.xy))) for p in emulator.pcas.values())
+    report, _ = validate(emulator, data)
+    for c, r in report.components.items():
+        assert r.min_r2 >= 0.99, (c, r.r2_per_pc)
+    folder = emulator.save(tmp_path / "emu")
+    assert Emulator.load(folder).pca_scaling == "none"
+    assert _case_emulator(data, folder, {"pca_scaling": "none"}).pca_scaling == "none"
+    with pytest.raises(ValueError, match="PCA scaling 'none', not 'cell'"):
+        _case_emulator(data, folder, {"pca_scaling": "cell"})
