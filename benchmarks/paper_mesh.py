@@ -34,12 +34,13 @@
         --results benchmarks/results/paper_mesh_uniaxial
     python benchmarks/paper_mesh.py coverage --study out/paper_uniaxial_noise \
         --results benchmarks/results/paper_mesh_uniaxial
-    # 7. the PCA in strain units (--pca-scaling none) instead of standardised per cell: the uniaxial
-    #    design's study again, and where each study loses the field's information
+    # 7. the PCA in strain units (--pca-scaling none) instead of standardised per cell, 5 + 5 PCs as the
+    #    standardised noisy cases keep: the uniaxial design's study again, and where each study loses the
+    #    field's information
     #    (benchmarks/information_loss.py, from design_information.py's Jacobians)
     skinid study noise --data out/paper_uniaxial.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
         --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
-        --levels 0.01 0.1 --pca-scaling none --out out/paper_uniaxial_noise_unscaled
+        --levels 0.01 0.1 --pca-scaling none --n-components 5 --out out/paper_uniaxial_noise_unscaled
     python benchmarks/paper_mesh.py table --run "unscaled PCA=out/paper_uniaxial_noise_unscaled" \
         --run "standardised PCA=benchmarks/results/paper_mesh_uniaxial/noise_paper_mesh_uniaxial" \
         --results benchmarks/results/paper_mesh_unscaled
@@ -47,6 +48,19 @@
         --results benchmarks/results/paper_mesh_unscaled
     python benchmarks/information_loss.py --study out/paper_uniaxial_noise --design uniaxial
     python benchmarks/information_loss.py --study out/paper_uniaxial_noise_unscaled --design uniaxial
+    # 8. the paper's observable: the mixed design with the skin cells' average strain (~50 min), as step 5
+    mpirun -n 2 skinid sweep --config benchmarks/configs/paper_mixed_cell_average.toml \
+        --out out/paper_mixed_cell_average.h5
+    skinid study noise --data out/paper_mixed_cell_average.h5 --designs 0 --gp-fraction 0.7 --restarts 0 \
+        --warmup 300 --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
+        --levels 0.01 0.1 --out out/paper_cell_average_noise
+    python benchmarks/paper_mesh.py table --run "cell average=out/paper_cell_average_noise" \
+        --run "surface=benchmarks/results/paper_mesh/noise_paper_mesh" \
+        --results benchmarks/results/paper_mesh_cell_average
+    python benchmarks/paper_mesh.py coverage --study out/paper_cell_average_noise \
+        --results benchmarks/results/paper_mesh_cell_average
+    python benchmarks/information_loss.py --study out/paper_cell_average_noise --design mixed \
+        --observable top_cell_average
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the

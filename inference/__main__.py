@@ -131,6 +131,8 @@ def _check_noise_study(args, n_designs: int) -> None:
         raise ValueError(f"--gp-fraction must be in (0, 1], got {args.gp_fraction}")
     if args.restarts < 0:
         raise ValueError(f"--restarts must be >= 0, got {args.restarts}")
+    if args.n_components is not None and args.n_components < 1:
+        raise ValueError(f"--n-components must be >= 1, got {args.n_components}")
 
 
 def _check_coverage(args, n_max: int | None, n_designs: int) -> None:
@@ -181,7 +183,8 @@ def _noise_study(args, data) -> None:
         tuple(args.lengths),
         tuple(args.levels),
         int_list(args.materials, "--materials"),
-        {"gp_fraction": args.gp_fraction, "restarts": args.restarts, "pca_scaling": args.pca_scaling},
+        {"gp_fraction": args.gp_fraction, "restarts": args.restarts, "pca_scaling": args.pca_scaling}
+        | ({} if args.n_components is None else {"n_components": args.n_components}),
     )
     print(f"wrote {args.out}/README.md")
 

@@ -270,6 +270,12 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")
     add_pca_scaling(p)
+    p.add_argument(
+        "--n-components",
+        type=int,
+        help="PCs per component in every case (default: the clean case keeps 99 %% of the variance, "
+        "the noisy cases as many)",
+    )
     _study_outputs(p, "subset of test materials (default: the test split)")
 
 

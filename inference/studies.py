@@ -278,7 +278,8 @@ def noise_study(
     fit_options: dict | None = None,
 ) -> dict[str, NoiseCase]:
     """The paper's noise study on ``data`` (clean): per case a noisy copy, an emulator fitted on
-    its training materials only (with the clean case's number of PCs), validation on its test
+    its training materials only (with the clean case's number of PCs, or ``fit_options``'
+    ``n_components`` in every case), validation on its test
     materials, and test-set posteriors for one design (last frame). Resumable: finished files
     are reused. Writes ``<out>/README.md``.
 
@@ -301,7 +302,7 @@ def noise_study(
                 add_noise(data, path, noise[0], noise[1], seed=k)
         case_data = StrainDataset.open(path)
         emulator = _case_emulator(case_data, folder / "emulator", fit_options)
-        if noise is None:
+        if noise is None and "n_components" not in fit_options:
             # noisy cases keep the clean number of PCs (as the paper does): a variance threshold
             # on noisy fields would retain hundreds of noise components
             fit_options = {**fit_options, "n_components": max(emulator.n_weights.values())}
