@@ -616,6 +616,7 @@ CASES = {
     ),
     "study-noise-length-zero": (f"{STUDY_NOISE} --lengths 0", "--lengths must be positive numbers, got 0", None),
     "study-noise-gp-fraction-above-1": (f"{STUDY_NOISE} --gp-fraction 2", "--gp-fraction must be in (0, 1]", None),
+    "study-noise-no-component": (f"{STUDY_NOISE} --n-components 0", "--n-components must be >= 1, got 0", None),
     # -- configurations (TOML), read by every FE command
     "config-unknown-key": (SWEEP, "config key 'solver.increment': unknown key", config("[solver]\nincrement = 5\n")),
     "config-integer-expected": (
