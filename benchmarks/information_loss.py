@@ -18,7 +18,8 @@ design_information.py) wherever the step allows:
 3. ``noise as modelled``: the likelihood's noise model instead — one sd per component shared by
    all its weights, at the posterior median of that sd.
 4. ``+ emulator error``: the likelihood's emulator covariance at the truth added (GP variance,
-   white-noise level included, held-out excess, PCA truncation), as the posterior carries it.
+   white-noise level included, held-out excess, PCA truncation), as the studies' posteriors
+   carry it (``--emulator-error on``).
 5. ``emulator Jacobian``: the emulator's derivative (autograd of its GP means) instead of the
    field's: the study's likelihood, linearised.
 6. ``posterior``: the NUTS width the study recorded.
@@ -133,6 +134,7 @@ def material_ladder(case: Path, material: int, jacobian_file: Path, observable: 
 
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
+    from inference.studies import read_study
     from skinfem.io import COMPONENTS, StrainDataset
     from surrogate.emulator import Emulator
 
@@ -149,8 +151,9 @@ def material_ladder(case: Path, material: int, jacobian_file: Path, observable: 
     maps = {c: weight_map(p.components_, p.scale_) for c, p in emulator.pcas.items()}
     noise_sd, length = case_noise(data_path)
     model_sd = {c: summary["parameters"][f"sigma_{c}"]["median"] for c in emulator.components}
+    design = read_study(case / "posteriors" / "study.json").designs  # the study's one design
     posterior = SkinPosterior(
-        emulator, ObservedWeights.project(emulator, from_dataset(data, material, [0], [-1])), gp_variance="exact"
+        emulator, ObservedWeights.project(emulator, from_dataset(data, material, design, [-1])), gp_variance="exact"
     )
     truth = torch.as_tensor(data.params[material], dtype=torch.float64)
     _, gp_cov = posterior.gp_moments(truth)
