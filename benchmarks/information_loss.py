@@ -14,7 +14,8 @@ design_information.py) wherever the step allows:
 1. ``field``: every cell of the components the emulator models (E_xx, E_yy), with the noise
    the study added (amplitude and length scale from the case's dataset).
 2. ``retained PCs``: the same field seen only through the PC weights the emulator keeps (the
-   case's PCA, per-cell standardised), with that noise carried exactly into the weights.
+   case's PCA, standardised per cell or not as it was fitted), with that noise carried exactly
+   into the weights.
 3. ``noise as modelled``: the likelihood's noise model instead — one sd per component shared by
    all its weights, at the posterior median of that sd.
 4. ``+ emulator error``: the likelihood's emulator covariance at the truth added (GP variance,
@@ -35,9 +36,15 @@ import argparse
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import h5py
 import numpy as np
+
+if TYPE_CHECKING:
+    from inference.studies import NoiseCase
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator
 
 PARAMS = ("mu", "k1", "k2", "kappa", "theta")
 STEPS = ("field", "retained PCs", "noise as modelled", "+ emulator error", "emulator Jacobian", "posterior")
@@ -128,33 +135,65 @@ def case_noise(path: Path) -> tuple[dict[str, float], float]:
     return dict(zip(COMPONENTS, noise["amplitude"])), float(noise["length_mm"])
 
 
-def material_ladder(case: Path, material: int, jacobian_file: Path, observable: str, correlation) -> Ladder:
-    """Steps 1-6 (STEPS) for one material of one noise-study case folder (``<study>/cases/<name>``)."""
+@dataclass(frozen=True)
+class StudyCase:
+    """What every material of one noise-study case shares, read once.
+
+    Attributes:
+        folder: the case's folder (``<study>/cases/<name>``).
+        data: its dataset (the clean one or its noisy copy); emulator: its emulator.
+        design: the study's one design (index into the dataset's designs).
+        noise_sd: per component the added noise's amplitude [strain] (0: the clean case).
+        correlation: (n_cells, n_cells) the added noise's correlation between cells.
+    """
+
+    folder: Path
+    data: StrainDataset
+    emulator: Emulator
+    design: list[int]
+    noise_sd: dict[str, float]
+    correlation: np.ndarray
+
+
+def read_case(folder: Path, record: NoiseCase) -> StudyCase:
+    """The shared inputs of one noise-study case folder, ``record`` its entry in noise_study.json."""
+    from inference.noise import correlation_matrix
+    from inference.studies import read_study
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator
+
+    data = StrainDataset.open(record.data)
+    noise_sd, length = case_noise(data.path)
+    return StudyCase(
+        folder,
+        data,
+        Emulator.load(folder / "emulator"),
+        read_study(folder / "posteriors" / "study.json").designs,
+        noise_sd,
+        correlation_matrix(data.xy, length),
+    )
+
+
+def material_ladder(case: StudyCase, material: int, jacobian_file: Path, observable: str) -> Ladder:
+    """Steps 1-6 (STEPS) for one material of one noise-study case."""
     import torch
 
     from inference.model import ObservedWeights, SkinPosterior
     from inference.observations import from_dataset
-    from inference.studies import read_study
-    from skinfem.io import COMPONENTS, StrainDataset
-    from surrogate.emulator import Emulator
+    from skinfem.io import COMPONENTS
 
-    summary = json.loads((case / "posteriors" / f"material_{material:03d}" / "summary.json").read_text())
-    data_path = Path(json.loads((case.parents[1] / "noise_study.json").read_text())[case.name]["data"])
-    data = StrainDataset.open(data_path)
-    emulator = Emulator.load(case / "emulator")
+    data, emulator = case.data, case.emulator
+    summary = json.loads((case.folder / "posteriors" / f"material_{material:03d}" / "summary.json").read_text())
     prior_range = np.diff(emulator.param_bounds, axis=1)[:, 0]
     saved = np.load(jacobian_file)
     if not np.allclose(saved["xy"], data.xy):
-        raise ValueError(f"{jacobian_file} was computed on other cells than {data_path}")
+        raise ValueError(f"{jacobian_file} was computed on other cells than {data.path}")
     jacobian = saved[f"jacobian_{observable}"] * prior_range  # (n_cells, 3, 5) per prior range
     field_jacobian = {c: jacobian[:, COMPONENTS.index(c)] for c in emulator.components}
     maps = {c: weight_map(p.components_, p.scale_) for c, p in emulator.pcas.items()}
-    noise_sd, length = case_noise(data_path)
     model_sd = {c: summary["parameters"][f"sigma_{c}"]["median"] for c in emulator.components}
-    design = read_study(case / "posteriors" / "study.json").designs  # the study's one design
-    posterior = SkinPosterior(
-        emulator, ObservedWeights.project(emulator, from_dataset(data, material, design, [-1])), gp_variance="exact"
-    )
+    observed = ObservedWeights.project(emulator, from_dataset(data, material, case.design, [-1]))
+    posterior = SkinPosterior(emulator, observed, gp_variance="exact")
     truth = torch.as_tensor(data.params[material], dtype=torch.float64)
     _, gp_cov = posterior.gp_moments(truth)
     emulator_variance = posterior.model_covariance(gp_cov).detach().numpy()[:, 0, 0]
@@ -162,13 +201,7 @@ def material_ladder(case: Path, material: int, jacobian_file: Path, observable: 
         lambda p: emulator.predict_weights(posterior.inputs(p), return_var=False)[0], truth
     ).numpy()
     widths = ladder(
-        field_jacobian,
-        maps,
-        noise_sd,
-        correlation(data.xy, length),
-        model_sd,
-        emulator_variance,
-        jac * prior_range,
+        field_jacobian, maps, case.noise_sd, case.correlation, model_sd, emulator_variance, jac * prior_range
     )
     widths.append(np.array([summary["parameters"][n]["interval_share_of_prior"] for n in PARAMS]))
     return Ladder(material, {step: dict(zip(PARAMS, map(float, w))) for step, w in zip(STEPS, widths)})
@@ -203,8 +236,6 @@ def finite(value):
 
 
 def main() -> None:
-    from inference.noise import correlation_matrix
-
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--study", type=Path, required=True, help="a noise study's folder (skinid study noise --out)")
     parser.add_argument("--design", required=True, help="the design's name in design_information.py (e.g. uniaxial)")
@@ -215,13 +246,16 @@ def main() -> None:
     parser.add_argument("--results", type=Path, default=Path("benchmarks/results/information_loss.json"))
     args = parser.parse_args()
     results = json.loads(args.results.read_text()) if args.results.exists() else {}
-    cases = json.loads((args.study / "noise_study.json").read_text())
-    key = f"{args.design}, {args.observable}, PCA scaling {cases[args.cases[0]].get('pca_scaling', 'cell')}"
+    from inference.studies import read_noise_study
+
+    cases = read_noise_study(args.study / "noise_study.json")
+    key = f"{args.design}, {args.observable}, PCA scaling {cases[args.cases[0]].pca_scaling}"
     entry = {}
     for name in args.cases:
         case = args.study / "cases" / name
+        shared = read_case(case, cases[name])
         ladders = [
-            material_ladder(case, int(m), path, args.observable, correlation_matrix)
+            material_ladder(shared, int(m), path, args.observable)
             for m, path in sorted(
                 (p.stem.split("_")[1], p) for p in args.jacobians.glob(f"{args.config}_*_{args.design}.npz")
             )
