@@ -7,7 +7,10 @@ component c(g):
     w_g ~ MultivariateNormal(m_g(params, alpha_o t_o), lambda (C_g + tau_g^2 (s s^T) * R_g + T_g) + S_g)   (over o)
 
 with m_g the emulator's GP predictive mean, C_g its joint predictive covariance over the
-observations, and, when ``emulator_error`` is on (default), the emulator's error beyond it
+observations (the GP's white-noise level included, unless the emulator was trained on noisy
+strains: that level is then the measurement's noise, which S_g carries, and C_g is the latent
+function's covariance; :attr:`surrogate.emulator.Emulator.white_noise_is_measurement`), and,
+when ``emulator_error`` is on (default), the emulator's error beyond it
 (:mod:`surrogate.error_model`): the cross-validated held-out excess tau_g^2, scaled by each
 observation's load s_o = |alpha_o t_o| / |alpha t|_max and correlated between observations as
 R_g, and the PCA-truncation variance T_g (diagonal) that a masked projection picks up; and
@@ -260,6 +263,8 @@ class SkinPosterior:
         self.noise_scale = noise_scale
         self.gp_variance = gp_variance
         self.emulator_error = emulator_error
+        # trained on noisy strains, the GPs' white noise is the measurement's: carried by S_g only
+        self.gp_white_noise = not emulator.white_noise_is_measurement
         bounds = emulator.param_bounds
         self.lower = torch.as_tensor(bounds[:, 0])
         self.span = torch.as_tensor(bounds[:, 1] - bounds[:, 0])
@@ -351,7 +356,7 @@ class SkinPosterior:
         x = self.inputs(params)
         if self.variance_is_fixed:
             return self.emulator.predict_weights(x, return_var=False), self.fixed_gp_cov
-        return self.emulator.predict_joint(x)
+        return self.emulator.predict_joint(x, white_noise=self.gp_white_noise)
 
     def shift_factor(self, params: torch.Tensor, differentiable: bool = True) -> torch.Tensor | None:
         """U (G, n_obs, 5) with J C J^T = U U^T (module doc), differentiable in params (5,) unless
@@ -518,9 +523,11 @@ class SkinPosterior:
         pick = draws[rng.choice(len(draws), size=min(n, len(draws)), replace=False)]
         fixed = torch.diagonal(self.fixed_gp_cov, dim1=-2, dim2=-1)
         with torch.no_grad():
-            ratios = np.stack(
-                [(self.emulator.predict_weights(self.inputs(torch.as_tensor(p)))[1].T / fixed).numpy() for p in pick]
-            )
+            variances = [
+                self.emulator.predict_weights(self.inputs(torch.as_tensor(p)), white_noise=self.gp_white_noise)[1]
+                for p in pick
+            ]
+        ratios = np.stack([(v.T / fixed).numpy() for v in variances])
         return GpVarianceSpread(
             ratio_median=float(np.median(ratios)),
             ratio_5=float(np.percentile(ratios, 5)),

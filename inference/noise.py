@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from skinfem.io import StrainDataset, copy_simulations, create_dataset_like
+from skinfem.io import AddedNoise, StrainDataset, copy_simulations, create_dataset_like
 from skinfem.outputs import write_atomically
 
 
@@ -85,15 +85,8 @@ def add_noise(data: StrainDataset, out: Path | str, length: float, level: float,
 
         create_dataset_like(tmp, data)
         with h5py.File(tmp, "a") as f:
-            f.attrs["noise"] = json.dumps(
-                {
-                    "length_mm": length,
-                    "level": level,
-                    "seed": seed,
-                    "amplitude": amplitude.tolist(),
-                    "source": str(data.path),
-                }
-            )
+            added = AddedNoise(length, level, tuple(amplitude.tolist()))
+            f.attrs["noise"] = json.dumps(added.to_json() | {"seed": seed, "source": str(data.path)})
         copy_simulations(data, tmp, lambda i: data.strain(i) + noise_fields(factor, amplitude, (n_des, n_frames), rng))
 
     return write_atomically(out, write)

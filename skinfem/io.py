@@ -215,6 +215,28 @@ def copy_simulations(data: StrainDataset, path: Path | str, strain_of) -> None:
                 write_simulation(path, i, j, None, status, data.messages[i, j])
 
 
+@dataclass(frozen=True)
+class AddedNoise:
+    """The measurement noise ``skinid noise`` added to a dataset's strains (RBF-correlated Gaussian).
+
+    Attributes:
+        length_mm: correlation length of the noise [mm].
+        level: its amplitude as a share of the clean training data's max |strain| per component [-].
+        amplitude: (3,) its standard deviation per strain component (xx, yy, xy) [-].
+    """
+
+    length_mm: float
+    level: float
+    amplitude: tuple[float, ...]
+
+    @classmethod
+    def from_json(cls, entry: dict) -> AddedNoise:
+        return cls(float(entry["length_mm"]), float(entry["level"]), tuple(float(a) for a in entry["amplitude"]))
+
+    def to_json(self) -> dict:
+        return {"length_mm": self.length_mm, "level": self.level, "amplitude": list(self.amplitude)}
+
+
 @dataclass
 class StrainDataset:
     """A dataset read into memory (strain lazily: use :meth:`strain` to slice it)."""
@@ -236,6 +258,7 @@ class StrainDataset:
     mesh_sha256: str
     versions: dict
     created: str
+    added_noise: AddedNoise | None = None  # the noise `skinid noise` added; None: simulated strains
 
     @property
     def observable(self) -> str:
@@ -273,6 +296,7 @@ class StrainDataset:
                 raise ValueError(f"'{path}' is not a complete skinid dataset: it has no {missing[0]}")
             p = f["params"]
             observable = str(f.attrs.get("observable", "top_cell_average"))  # older files: the cell average
+            noise = f.attrs.get("noise")
             return cls(
                 path=path,
                 config=config_from_toml(f.attrs["config"]).with_changes(observable={"kind": observable}),
@@ -291,6 +315,7 @@ class StrainDataset:
                 mesh_sha256=str(f.attrs["mesh_sha256"]),
                 versions=json.loads(f.attrs["versions"]),
                 created=str(f.attrs["created"]),
+                added_noise=None if noise is None else AddedNoise.from_json(json.loads(noise)),
             )
 
     @property

@@ -33,7 +33,7 @@ import joblib
 import numpy as np
 import torch
 
-from skinfem.io import COMPONENTS, STATUS_OK, StrainDataset
+from skinfem.io import COMPONENTS, STATUS_OK, AddedNoise, StrainDataset
 from skinfem.outputs import write_text
 from surrogate.error_model import FOLDS, HeldOutExcess, cross_validated_excess, design_correlation, material_folds
 from surrogate.gp import GPBank, fit_gps
@@ -121,6 +121,9 @@ class EmulatorProvenance:
             :func:`surrogate.validation.validate_directory` has run.
         held_out_excess: the GPs' error beyond their own variance on left-out training
             materials (:mod:`surrogate.error_model`); None for emulators fitted before it.
+        training_noise: the measurement noise the training strains carry (a dataset ``skinid
+            noise`` wrote), or None (simulated strains). With it the GPs' white-noise level is that
+            noise, not an emulator error (:meth:`Emulator.white_noise_is_measurement`).
     """
 
     dataset: Path
@@ -139,6 +142,7 @@ class EmulatorProvenance:
     versions: dict[str, str]
     validation: dict[str, HeldOutScores] | None = None
     held_out_excess: HeldOutExcess | None = None
+    training_noise: AddedNoise | None = None
 
     def to_json(self) -> dict:
         """The ``meta.json`` entries (JSON types), as :meth:`from_json` reads them."""
@@ -162,6 +166,8 @@ class EmulatorProvenance:
             out["validation"] = {c: asdict(s) for c, s in self.validation.items()}
         if self.held_out_excess is not None:
             out["held_out_excess"] = self.held_out_excess.to_json()
+        if self.training_noise is not None:
+            out["training_noise"] = self.training_noise.to_json()
         return out
 
     @classmethod
@@ -171,7 +177,7 @@ class EmulatorProvenance:
         Raises:
             KeyError: an entry is missing.
         """
-        validation, excess = meta.get("validation"), meta.get("held_out_excess")
+        validation, excess, noise = meta.get("validation"), meta.get("held_out_excess"), meta.get("training_noise")
         return cls(
             dataset=Path(meta["dataset"]),
             dataset_config=meta["dataset_config"],
@@ -189,6 +195,7 @@ class EmulatorProvenance:
             versions=dict(meta["versions"]),
             validation=None if validation is None else {c: HeldOutScores(**s) for c, s in validation.items()},
             held_out_excess=None if excess is None else HeldOutExcess.from_json(excess),
+            training_noise=None if noise is None else AddedNoise.from_json(noise),
         )
 
     def validated(self, scores: dict[str, HeldOutScores]) -> EmulatorProvenance:
@@ -272,13 +279,24 @@ class Emulator:
             span = torch.as_tensor(span, dtype=x.dtype, device=x.device)
         return (x - lower) / span
 
-    def predict_weights(self, x: torch.Tensor, return_var: bool = True):
-        """PC weights at raw inputs x (B, 7) (torch, differentiable): mean (B, G)[, var (B, G)]."""
-        return self.gps(self.scale(x), return_var=return_var)
+    def predict_weights(self, x: torch.Tensor, return_var: bool = True, white_noise: bool = True):
+        """PC weights at raw inputs x (B, 7) (torch, differentiable): mean (B, G)[, var (B, G)],
+        the variance with the GPs' white-noise level unless ``white_noise`` is False."""
+        return self.gps(self.scale(x), return_var=return_var, white_noise=white_noise)
 
-    def predict_joint(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """PC weights at raw inputs x (B, 7): mean (B, G) and each GP's joint covariance (G, B, B)."""
-        return self.gps.joint(self.scale(x))
+    def predict_joint(self, x: torch.Tensor, white_noise: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+        """PC weights at raw inputs x (B, 7): mean (B, G) and each GP's joint covariance (G, B, B),
+        with the GPs' white-noise level unless ``white_noise`` is False."""
+        return self.gps.joint(self.scale(x), white_noise=white_noise)
+
+    @property
+    def white_noise_is_measurement(self) -> bool:
+        """True when the training strains carry measurement noise (``training_noise``): the GPs'
+        white-noise level is then that noise -- the weights of a noisy measurement vary by it
+        about the GP's latent function -- and a likelihood that models the measurement's noise
+        carries the GPs' latent covariance as the emulator's error, so as not to count the
+        noise twice. Otherwise (simulated strains) it is the fields' roughness, an emulator error."""
+        return self.provenance.training_noise is not None
 
     @property
     def held_out_excess(self) -> HeldOutExcess | None:
@@ -500,6 +518,7 @@ def fit_emulator(
         fit_seconds={"pca": pca_seconds, "held_out_excess": cv_seconds, "total": time.perf_counter() - start},
         versions={n: metadata.version(n) for n in ("skinid", "scikit-learn", "torch", "numpy")},
         held_out_excess=excess,
+        training_noise=data.added_noise,
     )
     emulator = Emulator(
         pcas=pcas,

@@ -162,9 +162,10 @@ class GPBank(torch.nn.Module):
             return torch.exp_(sq.clamp_min_(0.0).mul_(-0.5)).mul_(self.constant[:, None, None])
         return self.constant[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
 
-    def joint(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def joint(self, x: torch.Tensor, white_noise: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Predictive mean (B, G) and joint covariance (G, B, B) of each GP at unit-box inputs
-        x (B, d); the white noise is on the diagonal only. ``forward``'s variance is its diagonal."""
+        x (B, d); the white noise, unless ``white_noise`` is False (the latent function's
+        covariance), is on the diagonal only. ``forward``'s variance is its diagonal."""
         x = x.to(torch.float64)
         k = self.cross_covariance(x)
         mean = torch.einsum("gbn,gn->bg", k, self.alpha) * self.y_std + self.y_mean
@@ -172,15 +173,17 @@ class GPBank(torch.nn.Module):
         a = x[None] / self.length_scale[:, None]  # (G, B, d)
         sq = ((a[:, :, None] - a[:, None]) ** 2).sum(-1)
         prior = self.constant[:, None, None] * torch.exp(-0.5 * sq)
-        prior = prior + torch.diag_embed(self.noise[:, None].expand(-1, len(x)))
+        if white_noise:
+            prior = prior + torch.diag_embed(self.noise[:, None].expand(-1, len(x)))
         return mean, (prior - v.transpose(1, 2) @ v) * (self.y_std**2)[:, None, None]
 
-    def forward(self, x: torch.Tensor, return_var: bool = True):
-        """Predictive mean (B, G) and, if asked, variance (B, G) at unit-box inputs x (B, d)."""
+    def forward(self, x: torch.Tensor, return_var: bool = True, white_noise: bool = True):
+        """Predictive mean (B, G) and, if asked, variance (B, G) at unit-box inputs x (B, d), with
+        the white-noise level unless ``white_noise`` is False (the latent function's variance)."""
         k = self.cross_covariance(x.to(torch.float64))
         mean = torch.einsum("gbn,gn->bg", k, self.alpha) * self.y_std + self.y_mean
         if not return_var:
             return mean
         v = torch.linalg.solve_triangular(self.chol, k.transpose(1, 2), upper=False)  # (G, n, B)
-        var = (self.constant + self.noise)[:, None] - (v**2).sum(1)
+        var = (self.constant + self.noise * white_noise)[:, None] - (v**2).sum(1)
         return mean, var.clamp_min(0.0).T * self.y_std**2

@@ -56,6 +56,26 @@ def test_joint_covariance_is_scikit_learns_and_its_diagonal_the_variance():
     )
 
 
+def test_latent_covariance_leaves_out_the_white_noise_level():
+    """The latent function's covariance, by hand from scikit-learn's fitted kernel parts:
+    k1(x, x) - k1(x, X) K^-1 k1(X, x), K the training covariance with its white noise; it is the
+    joint covariance less the white-noise level on the diagonal."""
+    rng = np.random.default_rng(2)
+    x, y, _ = material_rows(rng, 10, 4, 0.0)
+    gp = fixed_gp(x, y[:, 0], noise=0.05)
+    bank = GPBank.from_sklearn([gp])
+    x_new = rng.uniform(size=(3, 7))
+    signal = gp.gp.kernel_.k1
+    cross = signal(x_new, x)
+    expected = signal(x_new) - cross @ np.linalg.solve(gp.gp.kernel_(x), cross.T)
+    _, latent = bank.joint(torch.as_tensor(x_new), white_noise=False)
+    np.testing.assert_allclose(latent[0].numpy(), gp.y_std**2 * expected, rtol=1e-8, atol=1e-12)
+    _, full = bank.joint(torch.as_tensor(x_new))
+    np.testing.assert_allclose((full - latent)[0].numpy(), gp.y_std**2 * 0.05 * np.eye(3), atol=1e-12)
+    _, variance = bank(torch.as_tensor(x_new), white_noise=False)
+    np.testing.assert_allclose(variance[:, 0].numpy(), np.diag(latent[0].numpy()), rtol=1e-10)
+
+
 def test_excess_variance_is_the_maximum_likelihood_closed_form():
     """With one GP variance v and one load scale s the likelihood of N(0, v + tau^2 s^2) is
     maximal at tau^2 = (mean(r^2) - v) / s^2, or 0 when v already exceeds mean(r^2)."""
@@ -187,17 +207,28 @@ def test_truncation_variance_is_zero_for_a_full_field_and_the_training_leak_when
     np.testing.assert_allclose(predicted, np.mean(leak**2, axis=0), rtol=1e-8)
 
 
-def test_likelihood_is_the_multivariate_normal_of_the_summed_covariances(emulator_and_observation):
+@pytest.mark.parametrize("noisy_training", [False, True])
+def test_likelihood_is_the_multivariate_normal_of_the_summed_covariances(emulator_and_observation, noisy_training):
     """Two observations of one material: the log likelihood equals scipy's multivariate normal
     with the covariance built term by term (GP joint + held-out excess x correlation +
-    truncation + known noise) for every PC weight."""
-    emulator, observed = emulator_and_observation
-    from inference.model import SkinPosterior
+    truncation + known noise) for every PC weight. An emulator trained on noisy strains carries
+    the GPs' latent covariance: their white-noise level is that noise, counted once, as the
+    measurement's."""
+    from dataclasses import replace
 
+    from inference.model import SkinPosterior
+    from skinfem.io import AddedNoise
+
+    emulator, observed = emulator_and_observation
+    if noisy_training:
+        noise = AddedNoise(0.1, 0.01, (1e-3, 1e-3, 1e-3))
+        emulator = replace(emulator, provenance=replace(emulator.provenance, training_noise=noise))
     post = SkinPosterior(emulator, observed, noise="known")
     params = torch.as_tensor(emulator.param_bounds.mean(1))
     x = torch.cat([params.expand(2, 5), torch.as_tensor(observed.design_inputs)], -1)
-    mean, gp_cov = emulator.predict_joint(x)
+    mean, gp_cov = emulator.predict_joint(x, white_noise=not noisy_training)
+    white = emulator.gps.noise * emulator.gps.y_std**2
+    assert torch.allclose(emulator.predict_joint(x)[1] - gp_cov, noisy_training * white[:, None, None] * torch.eye(2))
     tau2 = np.array(emulator.held_out_excess.variance)
     load = np.linalg.norm(observed.design_inputs, axis=1) / 1.2  # |alpha t| / the reference load
     correlation = emulator.error_correlation(observed.design_inputs) * np.outer(load, load)

@@ -148,13 +148,14 @@ class LinearEmulator:
         self.param_bounds = np.array([[-50.0, 50.0]] * 5)
         self.var = 1e-3
 
-    def predict_weights(self, x, return_var=True):
+    def predict_weights(self, x, return_var=True, white_noise=True):
         mean = x @ self.A + self.b
         return (mean, torch.full_like(mean, self.var)) if return_var else mean
 
     held_out_excess = None
+    white_noise_is_measurement = False
 
-    def predict_joint(self, x):
+    def predict_joint(self, x, white_noise=True):
         mean = x @ self.A + self.b
         return mean, self.var * torch.eye(len(x), dtype=mean.dtype).expand(mean.shape[1], -1, -1)
 

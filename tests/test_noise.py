@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from inference.noise import correlation_factor, noise_amplitude, noise_fields
-from skinfem.io import StrainDataset
+from skinfem.io import AddedNoise, StrainDataset
+from surrogate.emulator import Emulator
 from tests.cli_helpers import skinid
 
 
@@ -48,6 +49,7 @@ def test_noisy_dataset(small_dataset, tmp_path):
     with h5py.File(out) as f:
         meta = json.loads(f.attrs["noise"])
     assert meta["length_mm"] == 1.0 and meta["seed"] == 3
+    assert noisy.added_noise == AddedNoise(1.0, 0.05, tuple(amplitude)) and clean.added_noise is None
     again = tmp_path / "again.h5"
     res = skinid("noise", "--data", small_dataset, "--length", "1.0", "--level", "0.05", "--seed", "3", "--out", again)
     assert res.returncode == 0
@@ -86,3 +88,7 @@ def test_noise_study_runs_end_to_end(small_dataset, tmp_path):
     assert (cases["clean"].level, cases["m5"].length_mm, cases["m5"].level) == (None, 1.0, 0.05)
     assert cases["m5"].data == str(tmp_path / "cases" / "m5" / "data.h5")
     assert cases["m5"].study.designs == [2] and cases["m5"].study.materials == [material]
+    # the noisy case's emulator knows its GPs' white noise is the measurement's (counted once)
+    noisy_emulator = Emulator.load(tmp_path / "cases" / "m5" / "emulator")
+    assert noisy_emulator.provenance.training_noise.level == 0.05 and noisy_emulator.white_noise_is_measurement
+    assert not Emulator.load(tmp_path / "cases" / "clean" / "emulator").white_noise_is_measurement
