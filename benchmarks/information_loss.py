@@ -19,8 +19,10 @@ design_information.py) wherever the step allows:
 3. ``noise as modelled``: the likelihood's noise model instead — one sd per component shared by
    all its weights, at the posterior median of that sd.
 4. ``+ emulator error``: the likelihood's emulator covariance at the truth added (GP variance,
-   white-noise level included, held-out excess, PCA truncation), as the studies' posteriors
-   carry it (``--emulator-error on``).
+   held-out excess, PCA truncation), as the studies' posteriors carry it (``--emulator-error
+   on``); the GPs' white-noise level is in it unless the emulator recorded its training data's
+   noise (then that level is the measurement's noise; the key says "latent GP"). Each noisy
+   case also records its GPs' white-noise sd over the added noise's sd per weight.
 5. ``emulator Jacobian``: the emulator's derivative (autograd of its GP means) instead of the
    field's: the study's likelihood, linearised.
 6. ``posterior``: the NUTS width the study recorded.
@@ -38,7 +40,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import h5py
 import numpy as np
 
 if TYPE_CHECKING:
@@ -124,15 +125,23 @@ def ladder(
     ]
 
 
-def case_noise(path: Path) -> tuple[dict[str, float], float]:
+def case_noise(data: StrainDataset) -> tuple[dict[str, float], float]:
     """The noise a study case added (amplitude per component [strain], length scale [mm]); none for the clean data."""
     from skinfem.io import COMPONENTS
 
-    with h5py.File(path, "r") as f:
-        noise = json.loads(f.attrs["noise"]) if "noise" in f.attrs else None
+    noise = data.added_noise
     if noise is None:
         return dict.fromkeys(COMPONENTS, 0.0), 0.0
-    return dict(zip(COMPONENTS, noise["amplitude"])), float(noise["length_mm"])
+    return dict(zip(COMPONENTS, noise.amplitude)), noise.length_mm
+
+
+def white_noise_over_added(case: StudyCase) -> dict[str, list[float]] | None:
+    """Per component, each GP's white-noise sd over the added noise's sd [-] (None: clean case)."""
+    if case.data.added_noise is None:
+        return None
+    gps, slices = case.emulator.gps, case.emulator.weight_slices()
+    sd = (gps.noise * gps.y_std**2).sqrt().numpy()
+    return {c: (sd[s] / case.noise_sd[c]).tolist() for c, s in slices.items()}
 
 
 @dataclass(frozen=True)
@@ -163,7 +172,7 @@ def read_case(folder: Path, record: NoiseCase) -> StudyCase:
     from surrogate.emulator import Emulator
 
     data = StrainDataset.open(record.data)
-    noise_sd, length = case_noise(data.path)
+    noise_sd, length = case_noise(data)
     return StudyCase(
         folder,
         data,
@@ -249,11 +258,11 @@ def main() -> None:
     from inference.studies import read_noise_study
 
     cases = read_noise_study(args.study / "noise_study.json")
-    key = f"{args.design}, {args.observable}, PCA scaling {cases[args.cases[0]].pca_scaling}"
-    entry = {}
+    entry, latent = {}, False
     for name in args.cases:
         case = args.study / "cases" / name
         shared = read_case(case, cases[name])
+        latent |= shared.emulator.white_noise_is_measurement
         ladders = [
             material_ladder(shared, int(m), path, args.observable)
             for m, path in sorted(
@@ -265,9 +274,11 @@ def main() -> None:
             raise SystemExit(f"error: no material of {case} has a Jacobian in {args.jacobians}")
         entry[name] = {
             "materials": [lad.material for lad in ladders],
+            "gp_white_noise_sd_over_added_sd": white_noise_over_added(shared),
             "median": medians(ladders),
             "per_material": [finite(asdict(lad)) for lad in ladders],
         }
+    key = f"{args.design}, {args.observable}, PCA scaling {cases[args.cases[0]].pca_scaling}" + ", latent GP" * latent
     command = (
         f"python benchmarks/information_loss.py --study {args.study} --design {args.design} "
         f"--observable {args.observable}"
