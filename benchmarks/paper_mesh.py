@@ -61,6 +61,17 @@
         --results benchmarks/results/paper_mesh_cell_average
     python benchmarks/information_loss.py --study out/paper_cell_average_noise --design mixed \
         --observable top_cell_average
+    # 9. step 7 again with the training noise counted once (emulators that record their training data's
+    #    noise carry the GPs' latent covariance), and the mixed design's surface data the same way
+    skinid study noise --data out/paper_uniaxial.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
+        --levels 0.01 0.1 --pca-scaling none --n-components 5 --out out/paper_uniaxial_noise_latent
+    python benchmarks/paper_mesh.py table --run "latent GP=out/paper_uniaxial_noise_latent" \
+        --run "white noise counted twice=benchmarks/results/paper_mesh_unscaled/noise_paper_mesh_unscaled" \
+        --results benchmarks/results/paper_mesh_latent
+    python benchmarks/paper_mesh.py coverage --study out/paper_uniaxial_noise_latent \
+        --results benchmarks/results/paper_mesh_latent
+    python benchmarks/information_loss.py --study out/paper_uniaxial_noise_latent --design uniaxial
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
