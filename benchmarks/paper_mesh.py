@@ -72,6 +72,15 @@
     python benchmarks/paper_mesh.py coverage --study out/paper_uniaxial_noise_latent \
         --results benchmarks/results/paper_mesh_latent
     python benchmarks/information_loss.py --study out/paper_uniaxial_noise_latent --design uniaxial
+    mpirun -n 2 skinid sweep --config benchmarks/configs/paper_mixed.toml --out out/paper_mixed.h5
+    skinid study noise --data out/paper_mixed.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 0.1 \
+        --levels 0.01 0.1 --pca-scaling none --n-components 5 --out out/paper_mixed_noise_latent
+    python benchmarks/paper_mesh.py table --run "unscaled PCA, latent GP=out/paper_mixed_noise_latent" \
+        --run "standardised PCA=benchmarks/results/paper_mesh/noise_paper_mesh" \
+        --results benchmarks/results/paper_mesh_mixed_unscaled
+    python benchmarks/paper_mesh.py coverage --study out/paper_mixed_noise_latent \
+        --results benchmarks/results/paper_mesh_mixed_unscaled
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
