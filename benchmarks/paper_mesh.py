@@ -81,6 +81,7 @@
         --results benchmarks/results/paper_mesh_mixed_unscaled
     python benchmarks/paper_mesh.py coverage --study out/paper_mixed_noise_latent \
         --results benchmarks/results/paper_mesh_mixed_unscaled
+    python benchmarks/information_loss.py --study out/paper_mixed_noise_latent --design mixed
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
