@@ -237,6 +237,15 @@ class AddedNoise:
         return {"length_mm": self.length_mm, "level": self.level, "amplitude": list(self.amplitude)}
 
 
+def _added_noise(path: Path, text: str) -> AddedNoise:
+    """The dataset's ``noise`` attribute (JSON); ValueError naming the file if it is not one."""
+    try:
+        return AddedNoise.from_json(json.loads(text))
+    except (KeyError, TypeError, ValueError) as exc:  # ValueError includes JSONDecodeError
+        problem = f"no entry {exc}" if isinstance(exc, KeyError) else exc
+        raise ValueError(f"'{path}' has a corrupt 'noise' attribute ({problem}): add the noise again") from None
+
+
 @dataclass
 class StrainDataset:
     """A dataset read into memory (strain lazily: use :meth:`strain` to slice it)."""
@@ -315,7 +324,7 @@ class StrainDataset:
                 mesh_sha256=str(f.attrs["mesh_sha256"]),
                 versions=json.loads(f.attrs["versions"]),
                 created=str(f.attrs["created"]),
-                added_noise=None if noise is None else AddedNoise.from_json(json.loads(noise)),
+                added_noise=None if noise is None else _added_noise(path, noise),
             )
 
     @property

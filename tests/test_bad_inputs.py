@@ -460,6 +460,16 @@ CASES = {
         "is not a complete skinid dataset: it has no /strain",  # KeyError
         dataset(lambda f: f.__delitem__("strain")),
     ),
+    "fit-corrupt-noise-attribute": (
+        "surrogate fit --data {tmp}/bad.h5 --out {out}",
+        "has a corrupt 'noise' attribute (no entry 'amplitude')",  # KeyError
+        dataset(lambda f: f.attrs.__setitem__("noise", '{"length_mm": 0.1, "level": 0.01}')),
+    ),
+    "info-noise-attribute-not-json": (
+        "info {tmp}/bad.h5",
+        "has a corrupt 'noise' attribute (Expecting value",
+        dataset(lambda f: f.attrs.__setitem__("noise", "not json")),
+    ),
     "fit-no-strain": (
         "surrogate fit --data {tmp}/bad.h5 --out {out}",
         "it has no /strain",  # KeyError
