@@ -150,6 +150,7 @@ def write_subset(data_path: Path, cells: np.ndarray, out: Path) -> Path:
             f"{data.mesh_sha256}:cells{len(cells)}",
             bounds=np.stack([data.lower, data.upper], 1),
             versions=data.versions,
+            added_noise=data.added_noise,
         )
         copy_simulations(data, tmp, lambda i: data.strain(i)[:, :, cells])
 

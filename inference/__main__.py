@@ -248,7 +248,7 @@ def _setups(args, emulator, data, designs: list[int]) -> None:
 
 
 def cmd_noise(args) -> None:
-    from inference.noise import add_noise
+    from inference.noise import add_noise, check_clean
     from skinfem.io import StrainDataset
     from skinfem.outputs import check_output
 
@@ -260,6 +260,7 @@ def cmd_noise(args) -> None:
     if not 0 <= args.level < 1:
         raise ValueError(f"--level: the noise level must be a fraction in [0, 1), got {args.level}")
     data = StrainDataset.open(args.data)
+    check_clean(data)
     add_noise(data, args.out, args.length, args.level, args.seed)
     print(
         f"added noise (length {args.length} mm, level {args.level:.0%}, seed {args.seed}) to "

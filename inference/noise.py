@@ -73,8 +73,19 @@ def noise_fields(factor: np.ndarray, amplitude: np.ndarray, shape: tuple[int, ..
     return np.swapaxes(correlated, -1, -2) * amplitude
 
 
+def check_clean(data: StrainDataset) -> None:
+    """ValueError if ``data`` already carries added noise: a second noise would go unrecorded."""
+    if data.added_noise is not None:
+        raise ValueError(f"'{data.path}' already carries added noise: add noise to the clean dataset")
+
+
 def add_noise(data: StrainDataset, out: Path | str, length: float, level: float, seed: int = 0) -> Path:
-    """Write a copy of ``data`` with correlated noise added to every converged frame."""
+    """Write a copy of ``data`` with correlated noise added to every converged frame.
+
+    Raises:
+        ValueError: ``data`` already carries added noise (the copy could not say which it holds).
+    """
+    check_clean(data)
     amplitude = noise_amplitude(data, level)
     factor = correlation_factor(data.xy, length)
     rng = np.random.default_rng(seed)

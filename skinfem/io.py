@@ -87,6 +87,7 @@ def create_dataset(
     mesh_sha256: str,
     bounds: np.ndarray | None = None,
     versions: dict[str, str] | None = None,
+    added_noise: AddedNoise | None = None,
 ) -> None:
     """Create an empty dataset (every simulation 'not run') with all metadata.
 
@@ -99,6 +100,8 @@ def create_dataset(
         bounds: (5, 2) parameter box of the design (default: min/max of ``params``).
         versions: the packages that made the simulations (default: this process's,
             :func:`package_versions`).
+        added_noise: the measurement noise the strains will carry (the ``noise`` attribute);
+            None: simulated strains.
     """
     params = np.asarray(params, dtype=float)
     bounds = np.stack([params.min(0), params.max(0)], 1) if bounds is None else np.asarray(bounds)
@@ -112,6 +115,8 @@ def create_dataset(
         f.attrs["created"] = datetime.now(UTC).isoformat(timespec="seconds")
         f.attrs["seed"] = config.sweep.seed
         f.attrs["observable"] = config.observable.kind
+        if added_noise is not None:
+            f.attrs["noise"] = json.dumps(added_noise.to_json())
         d = f.create_dataset("params", data=params)
         d.attrs["names"] = list(PARAM_NAMES)
         d.attrs["units"] = list(PARAM_UNITS)
@@ -137,7 +142,7 @@ def create_dataset(
 
 def create_dataset_like(path: Path | str, data: StrainDataset) -> None:
     """Create an empty dataset with the metadata (config, design, cells, split, mesh, the versions
-    that made its simulations) of ``data``."""
+    that made its simulations, the noise it carries) of ``data``."""
     create_dataset(
         path,
         data.config,
@@ -150,6 +155,7 @@ def create_dataset_like(path: Path | str, data: StrainDataset) -> None:
         data.mesh_sha256,
         bounds=np.stack([data.lower, data.upper], 1),
         versions=data.versions,
+        added_noise=data.added_noise,
     )
 
 

@@ -402,7 +402,7 @@ def merge_datasets(paths: list[Path | str], out: Path | str) -> StrainDataset:
     """Join shard files of one sweep into ``out`` (written atomically).
 
     Raises:
-        ValueError: the shards differ in configuration, mesh, materials, designs, frames or
+        ValueError: the shards differ in configuration, mesh, added noise, materials, designs, frames or
             cells, or two shards both ran the same simulation with different results.
     """
     if not paths:
@@ -413,6 +413,7 @@ def merge_datasets(paths: list[Path | str], out: Path | str) -> StrainDataset:
         for what, a, b in (
             ("configuration", first.config.to_toml(), other.config.to_toml()),
             ("mesh", first.mesh_sha256, other.mesh_sha256),
+            ("added noise", first.added_noise, other.added_noise),
         ):
             if a != b:
                 raise ValueError(f"cannot merge: '{other.path}' has another {what} than '{first.path}'")

@@ -465,6 +465,11 @@ CASES = {
         "has a corrupt 'noise' attribute (no entry 'amplitude')",  # KeyError
         dataset(lambda f: f.attrs.__setitem__("noise", '{"length_mm": 0.1, "level": 0.01}')),
     ),
+    "noise-on-noisy-data": (  # the copy's noise attribute would have named only the second noise
+        "noise --data {tmp}/bad.h5 --length 1 --level 0.05 --out {out}.h5",
+        "already carries added noise: add noise to the clean dataset",
+        dataset(lambda f: f.attrs.__setitem__("noise", '{"length_mm": 0.1, "level": 0.01, "amplitude": [1, 1, 1]}')),
+    ),
     "info-noise-attribute-not-json": (
         "info {tmp}/bad.h5",
         "has a corrupt 'noise' attribute (Expecting value",

@@ -8,6 +8,7 @@ import pytest
 
 from inference.noise import correlation_factor, noise_amplitude, noise_fields
 from skinfem.io import AddedNoise, StrainDataset
+from skinfem.sweep import merge_datasets
 from surrogate.emulator import Emulator
 from tests.cli_helpers import skinid
 
@@ -50,6 +51,10 @@ def test_noisy_dataset(small_dataset, tmp_path):
         meta = json.loads(f.attrs["noise"])
     assert meta["length_mm"] == 1.0 and meta["seed"] == 3
     assert noisy.added_noise == AddedNoise(1.0, 0.05, tuple(amplitude)) and clean.added_noise is None
+    merged = merge_datasets([out], tmp_path / "merged.h5")  # a copy made from the noisy data says so too
+    assert merged.added_noise == noisy.added_noise and np.array_equal(merged.strain(), noisy.strain())
+    with pytest.raises(ValueError, match="another added noise"):
+        merge_datasets([small_dataset, out], tmp_path / "mixed.h5")
     again = tmp_path / "again.h5"
     res = skinid("noise", "--data", small_dataset, "--length", "1.0", "--level", "0.05", "--seed", "3", "--out", again)
     assert res.returncode == 0
