@@ -82,12 +82,33 @@
     python benchmarks/paper_mesh.py coverage --study out/paper_mixed_noise_latent \
         --results benchmarks/results/paper_mesh_mixed_unscaled
     python benchmarks/information_loss.py --study out/paper_mixed_noise_latent --design mixed
+    # 10. step 9's mixed-design study over the paper's 9 noise cases (one folder, completed with --resume
+    #     as cases are added), the noise-free case on all 20 test materials, and the noise on the weights
+    skinid study noise --data out/paper_mixed.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 5.0 1.0 0.1 \
+        --levels 0.01 0.1 0.05 --pca-scaling none --n-components 5 --out out/paper_mixed_noise_latent_long
+    skinid study test-set --emulator out/paper_mixed_noise_latent_long/cases/clean/emulator --data out/paper_mixed.h5 \
+        --designs 0 --materials 74,79,82,88,89,98,99,106,115,119 --warmup 300 --draws 300 --emulator-error on \
+        --out out/paper_mixed_clean20/cases/clean/posteriors
+    cp -r out/paper_mixed_noise_latent_long/cases/clean/posteriors/material_* \
+        out/paper_mixed_clean20/cases/clean/posteriors/
+    python benchmarks/paper_mesh.py table --run "unscaled PCA, latent GP=out/paper_mixed_noise_latent_long" \
+        --run "standardised PCA=benchmarks/results/paper_mesh/noise_paper_mesh" \
+        --results benchmarks/results/paper_mesh_mixed_noise_cases
+    python benchmarks/paper_mesh.py coverage --study out/paper_mixed_noise_latent_long \
+        --results benchmarks/results/paper_mesh_mixed_noise_cases
+    python benchmarks/paper_mesh.py coverage --study out/paper_mixed_clean20 \
+        --results benchmarks/results/paper_mesh_mixed_noise_cases/clean_20_materials
+    python benchmarks/paper_mesh.py noise-weights --study out/paper_mixed_noise_latent_long \
+        --cases s1 s5 s10 m1 m5 m10 l1 l5 l10 --results benchmarks/results/paper_mesh_mixed_noise_cases
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
 data each run came from. ``coverage`` reads every posterior of a noise study again and gives, per
 noise case and pooled, the coverage of the central 50 % and 95 % intervals and the truth's ranks
-(as ``skinid study coverage``).
+(as ``skinid study coverage``); of a study with the clean case alone, the clean case's.
+``noise-weights`` gives the sd of each case's added noise on each PC weight over its amplitude: 1
+for white noise, more where a correlated noise lies along the smooth leading PCs.
 """
 
 from __future__ import annotations
@@ -231,12 +252,14 @@ def study_cases(folder: Path) -> dict[str, list]:
 
 def noisy_truths(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """(truths (n, 5), prior bounds (n, 5, 2)) of the distinct test materials of a noise study's
-    noisy cases, from their posteriors' ``summary.json``."""
+    noisy cases (of its clean case if it has no other), from their posteriors' ``summary.json``."""
     from inference.posterior_file import PosteriorSummary
 
+    paths = list(folder.glob("cases/*/posteriors/material_*/summary.json"))
+    noisy = {p.parents[2].name for p in paths} != {"clean"}
     materials = {}
-    for path in folder.glob("cases/*/posteriors/material_*/summary.json"):
-        if path.parents[2].name != "clean":
+    for path in paths:
+        if path.parents[2].name != "clean" or not noisy:
             summary = PosteriorSummary.load(path)
             materials[path.parent.name] = (
                 [summary.parameters[n].true for n in PARAMS],
@@ -277,6 +300,34 @@ def coverage_table(cases: dict[str, list], prior: list | None = None) -> tuple[s
     return "\n".join(header + rows), record
 
 
+def noise_on_weights(folder: Path, case: str) -> dict:
+    """The sd of a noise case's added noise on each PC weight of its emulator, and that sd over
+    the noise amplitude (1 for white noise: an orthonormal basis keeps its variance), from the
+    last frame of the first design of every material: noisy minus clean strains."""
+    from skinfem.io import STATUS_OK, StrainDataset
+    from surrogate.emulator import Emulator
+
+    noisy = StrainDataset.open(folder / "cases" / case / "data.h5")
+    clean = StrainDataset.open(noisy_source(noisy))
+    emulator = Emulator.load(folder / "cases" / case / "emulator")
+    materials = np.flatnonzero(noisy.status[:, 0] == STATUS_OK)
+    fields = [emulator.dataset_fields(np.stack([d.strain(i)[0, -1] for i in materials])) for d in (noisy, clean)]
+    sd = (emulator.weights_of_fields(fields[0]) - emulator.weights_of_fields(fields[1])).std(0)
+    amplitude = {c: noisy.added_noise.amplitude[k] for k, c in enumerate(("xx", "yy", "xy"))}
+    record = {"length_mm": noisy.added_noise.length_mm, "level": noisy.added_noise.level, "materials": len(materials)}
+    for c, part in emulator.weight_slices().items():
+        record[c] = {"sd": sd[part].tolist(), "sd_over_amplitude": (sd[part] / amplitude[c]).round(2).tolist()}
+    return record
+
+
+def noisy_source(noisy) -> Path:
+    """The clean dataset a noisy one was made from (its ``noise`` attribute's ``source``)."""
+    import h5py
+
+    with h5py.File(noisy.path) as f:
+        return Path(json.loads(f.attrs["noise"])["source"])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -290,7 +341,18 @@ def main() -> None:
     p = sub.add_parser("coverage", help="50 / 95 % coverage and truth ranks of a noise study's posteriors")
     p.add_argument("--study", type=Path, required=True)
     p.add_argument("--results", type=Path, default=RESULTS)
+    p = sub.add_parser("noise-weights", help="the sd of each noise case's noise on its emulator's PC weights")
+    p.add_argument("--study", type=Path, required=True)
+    p.add_argument("--cases", nargs="+", required=True)
+    p.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
+    if args.command == "noise-weights":
+        record = {case: noise_on_weights(args.study, case) for case in args.cases}
+        args.results.mkdir(parents=True, exist_ok=True)
+        (args.results / "noise_on_weights.json").write_text(json.dumps(record, indent=2) + "\n")
+        for case, r in record.items():
+            print(case, {c: r[c]["sd_over_amplitude"] for c in ("xx", "yy")})
+        return
     if args.command == "subset":
         from skinfem.io import StrainDataset
 
