@@ -145,3 +145,26 @@ def test_white_noise_keeps_its_sd_on_the_weights_and_correlated_noise_exceeds_it
     for c in ("xx", "yy"):
         assert all(0.5 < r < 1.6 for r in white[c]["sd_over_amplitude"]), white[c]
         assert long[c]["sd_over_amplitude"][0] > 2.5 * white[c]["sd_over_amplitude"][0], (long[c], white[c])
+
+
+def test_prior_alone_takes_the_noisy_cases_materials_or_the_clean_ones_in_a_clean_study(paper_mesh, tmp_path):
+    from inference.posterior_file import ParameterSummary, PosteriorSummary
+
+    def summary(study: str, case: str, material: int, truth: float) -> None:
+        estimate = ParameterSummary(0.5, 0.1, 0.9, 1.0, 400.0, 400.0, (0.0, 2.0), 0.4, truth, True)
+        folder = tmp_path / study / "cases" / case / "posteriors" / f"material_{material:03d}"
+        folder.mkdir(parents=True)
+        parameters = dict.fromkeys(paper_mesh.PARAMS, estimate)
+        PosteriorSummary(parameters, 4, 100, 0, (0.1,) * 4, (0.8,) * 4, 1.0, None, None, None, ()).write(
+            folder / "summary.json"
+        )
+
+    for study in ("clean only", "with noise"):
+        summary(study, "clean", 3, 0.2)
+        summary(study, "clean", 5, 0.4)
+    summary("with noise", "s1", 7, 0.6)
+    truths, bounds = paper_mesh.noisy_truths(tmp_path / "clean only")
+    np.testing.assert_allclose(np.sort(truths[:, 0]), [0.2, 0.4])
+    np.testing.assert_allclose(bounds, np.tile([0.0, 2.0], (2, 5, 1)))
+    truths, _ = paper_mesh.noisy_truths(tmp_path / "with noise")
+    np.testing.assert_allclose(truths, np.full((1, 5), 0.6))
