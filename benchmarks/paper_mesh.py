@@ -301,32 +301,28 @@ def coverage_table(cases: dict[str, list], prior: list | None = None) -> tuple[s
     return "\n".join(header + rows), record
 
 
-def noise_on_weights(folder: Path, case: str) -> dict:
-    """The sd of a noise case's added noise on each PC weight of its emulator, and that sd over
-    the noise amplitude (1 for white noise: an orthonormal basis keeps its variance), from the
-    last frame of the first design of every material: noisy minus clean strains."""
-    from skinfem.io import STATUS_OK, StrainDataset
+def noise_on_weights(folder: Path, case: str, draws: int = 400, seed: int = 0) -> dict:
+    """The sd of a noise case's noise on each PC weight of its emulator, and that sd over the noise
+    amplitude (1 for white noise: an orthonormal basis keeps its variance), from ``draws`` fresh
+    fields of the case's noise (its length and amplitude; independent of the noise the PCA saw)."""
+    from inference.noise import correlation_factor, noise_fields
+    from skinfem.io import StrainDataset
     from surrogate.emulator import Emulator
 
     noisy = StrainDataset.open(folder / "cases" / case / "data.h5")
-    clean = StrainDataset.open(noisy_source(noisy))
     emulator = Emulator.load(folder / "cases" / case / "emulator")
-    materials = np.flatnonzero(noisy.status[:, 0] == STATUS_OK)
-    fields = [emulator.dataset_fields(np.stack([d.strain(i)[0, -1] for i in materials])) for d in (noisy, clean)]
-    sd = (emulator.weights_of_fields(fields[0]) - emulator.weights_of_fields(fields[1])).std(0)
-    amplitude = {c: noisy.added_noise.amplitude[k] for k, c in enumerate(("xx", "yy", "xy"))}
-    record = {"length_mm": noisy.added_noise.length_mm, "level": noisy.added_noise.level, "materials": len(materials)}
+    noise = noisy.added_noise
+    amplitude = np.asarray(noise.amplitude)
+    fields = noise_fields(
+        correlation_factor(noisy.xy, noise.length_mm), amplitude, (draws,), np.random.default_rng(seed)
+    )
+    weights = emulator.weights_of_fields(emulator.dataset_fields(np.concatenate([fields, 0 * fields[:1]])))
+    sd = (weights[:-1] - weights[-1]).std(0)  # the weights' map is affine: minus the zero field's
+    record = {"length_mm": noise.length_mm, "level": noise.level, "draws": draws}
     for c, part in emulator.weight_slices().items():
-        record[c] = {"sd": sd[part].tolist(), "sd_over_amplitude": (sd[part] / amplitude[c]).round(2).tolist()}
+        ratio = sd[part] / amplitude[("xx", "yy", "xy").index(c)]
+        record[c] = {"sd": sd[part].tolist(), "sd_over_amplitude": ratio.round(2).tolist()}
     return record
-
-
-def noisy_source(noisy) -> Path:
-    """The clean dataset a noisy one was made from (its ``noise`` attribute's ``source``)."""
-    import h5py
-
-    with h5py.File(noisy.path) as f:
-        return Path(json.loads(f.attrs["noise"])["source"])
 
 
 def main() -> None:

@@ -128,8 +128,8 @@ def test_posteriors_equal_to_the_prior_cover_the_materials_in_its_central_half(p
 
 def test_white_noise_keeps_its_sd_on_the_weights_and_correlated_noise_exceeds_it(paper_mesh, small_dataset, tmp_path):
     """An orthonormal PCA basis keeps white noise's variance on every weight (sd / amplitude = 1,
-    up to the sampling error of 16 materials); noise correlated over 5 mm lies along the smooth
-    leading PCs and puts several times its amplitude on them."""
+    up to the sampling error of 400 fields, 3.5 %); noise correlated over 5 mm lies along the
+    smooth leading PCs and puts several times its amplitude on them."""
     from inference.noise import add_noise
     from skinfem.io import StrainDataset
     from surrogate.emulator import fit_emulator
@@ -141,10 +141,10 @@ def test_white_noise_keeps_its_sd_on_the_weights_and_correlated_noise_exceeds_it
         noisy = StrainDataset.open(add_noise(clean, folder / "data.h5", length, 0.01, seed=1))
         fit_emulator(noisy, n_components=3, pca_scaling="none", restarts=0, cv_folds=2).save(folder / "emulator")
     white, long = (paper_mesh.noise_on_weights(tmp_path, case) for case in ("white", "long"))
-    assert white["materials"] == len(clean.params) and white["length_mm"] == 1e-3
+    assert white["draws"] == 400 and white["length_mm"] == 1e-3
     for c in ("xx", "yy"):
-        assert all(0.5 < r < 1.6 for r in white[c]["sd_over_amplitude"]), white[c]
-        assert long[c]["sd_over_amplitude"][0] > 2.5 * white[c]["sd_over_amplitude"][0], (long[c], white[c])
+        assert all(0.88 < r < 1.12 for r in white[c]["sd_over_amplitude"]), white[c]
+        assert long[c]["sd_over_amplitude"][0] > 2.5, long[c]
 
 
 def test_prior_alone_takes_the_noisy_cases_materials_or_the_clean_ones_in_a_clean_study(paper_mesh, tmp_path):
