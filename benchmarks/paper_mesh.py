@@ -306,7 +306,7 @@ def noise_on_weights(folder: Path, case: str, draws: int = 400, seed: int = 0) -
     amplitude (1 for white noise: an orthonormal basis keeps its variance), from ``draws`` fresh
     fields of the case's noise (its length and amplitude; independent of the noise the PCA saw)."""
     from inference.noise import correlation_factor, noise_fields
-    from skinfem.io import StrainDataset
+    from skinfem.io import COMPONENTS, StrainDataset
     from surrogate.emulator import Emulator
 
     noisy = StrainDataset.open(folder / "cases" / case / "data.h5")
@@ -320,7 +320,7 @@ def noise_on_weights(folder: Path, case: str, draws: int = 400, seed: int = 0) -
     sd = (weights[:-1] - weights[-1]).std(0)  # the weights' map is affine: minus the zero field's
     record = {"length_mm": noise.length_mm, "level": noise.level, "draws": draws}
     for c, part in emulator.weight_slices().items():
-        ratio = sd[part] / amplitude[("xx", "yy", "xy").index(c)]
+        ratio = sd[part] / amplitude[COMPONENTS.index(c)]
         record[c] = {"sd": sd[part].tolist(), "sd_over_amplitude": ratio.round(2).tolist()}
     return record
 
