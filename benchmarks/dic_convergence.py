@@ -1,6 +1,6 @@
 """Convergence of what the check compares: the DIC surface strain at scattered points.
 
-    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper | finer]
+    python benchmarks/dic_convergence.py [meshes | refinements | edge | paper | finer | graded]
         [--out benchmarks/results/dic_convergence.json]
 
 One material (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), the mixed design
@@ -21,7 +21,9 @@ through the thickness (the DIC surface strain, and the average over the top laye
 that the datasets hold). ``finer``: the same Q2 series one edge halving further (0.25 mm), so
 that the limit is extrapolated from edge cells 1, 0.5 and 0.25 mm and the 0.5 mm mesh (the
 ``converged`` preset, the check's ``converged`` reference) is measured against a limit it is not
-the finest member of; with a 0.35 mm candidate. The parts are merged into the same file.
+the finest member of; with a 0.35 mm candidate. ``graded``: edge cells that double away from
+the edge (``mesh.edge_growth`` = 2) at 0.25, 0.125 and 0.0625 mm, against the ``finer`` limit and
+against their own. The parts are merged into the same file.
 Numbers are recorded, not asserted.
 """
 
@@ -67,7 +69,8 @@ REFINEMENTS = {
 
 def label(mesh) -> str:
     degree, hm, hf, s, m, *edge = mesh
-    return f"Q{degree} {hm:g}/{hf:g} mm, s{s} m{m}" + (f", edge {edge[0]:g} mm" if edge and edge[0] else "")
+    text = f"Q{degree} {hm:g}/{hf:g} mm, s{s} m{m}" + (f", edge {edge[0]:g} mm" if edge and edge[0] else "")
+    return text + (f" growth {edge[1]:g}" if len(edge) > 1 else "")
 
 
 def measure(mesh, xy, mesh_dir, warm: bool = True, cells: bool = False):
@@ -79,8 +82,16 @@ def measure(mesh, xy, mesh_dir, warm: bool = True, cells: bool = False):
     from skinfem.params import Design, SkinParams
 
     degree, hm, hf, s, m, *edge = mesh
+    h_edge, growth = (*edge, 0.0, 0.0)[:2]
     config = load_config("small").with_changes(
-        mesh={"h_membrane": hm, "h_far": hf, "skin_layers": s, "muscle_layers": m, "h_edge": edge[0] if edge else 0.0},
+        mesh={
+            "h_membrane": hm,
+            "h_far": hf,
+            "skin_layers": s,
+            "muscle_layers": m,
+            "h_edge": h_edge,
+            "edge_growth": growth,
+        },
         solver={"increments": 2, "element_degree": degree, "quadrature_degree": 2 * degree},
         observable={"kind": "top_cell_average"},
     )
@@ -101,7 +112,7 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "part", nargs="?", choices=["meshes", "refinements", "edge", "paper", "finer"], default="meshes"
+        "part", nargs="?", choices=["meshes", "refinements", "edge", "paper", "finer", "graded"], default="meshes"
     )
     parser.add_argument("--out", type=Path, default=HERE / "results" / "dic_convergence.json")
     parser.add_argument("--mesh-dir", type=Path, default=Path("meshes"))
@@ -120,8 +131,8 @@ def main() -> None:
         result["edge"] = edge_series(xy, args.mesh_dir)
     elif args.part == "paper":
         result["paper"] = paper_errors(xy, args.mesh_dir, args.store)
-    elif args.part == "finer":
-        result["finer"] = finer_errors(xy, args.mesh_dir, args.store)
+    elif args.part in ("finer", "graded"):
+        result[args.part] = (finer_errors if args.part == "finer" else graded_errors)(xy, args.mesh_dir, args.store)
         if MPI.COMM_WORLD.rank:
             return
     else:
@@ -194,6 +205,7 @@ PAPER_REFERENCE = [(2, 2, 4, 2, 4, 0.0), (2, 2, 4, 2, 4, 1.0), (2, 2, 4, 2, 4, 0
 PAPER_CANDIDATES = [(1, 0.5, 2.8, 4, 5, 0.25), (2, 2, 4, 3, 4, 1.0), (2, 2, 4, 2, 8, 1.0)]
 FINER_REFERENCE = [*PAPER_REFERENCE[1:], (2, 2, 4, 2, 4, 0.25)]
 FINER_CANDIDATES = [(2, 2, 4, 2, 4, 0.35)]
+GRADED_SERIES = [(2, 2, 4, 2, 4, h, 2.0) for h in (0.25, 0.125, 0.0625)]  # mesh.edge_growth = 2
 
 
 def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
@@ -287,6 +299,30 @@ def finer_errors(xy, mesh_dir, store: Path) -> dict:
         "seconds_note": "one simulation on one rank, the other rank simulating another mesh",
         **summary,
         "series_changes": changes,
+    }
+
+
+def graded_errors(xy, mesh_dir, store: Path) -> dict:
+    """Edge cells that double away from the membrane edge (``mesh.edge_growth`` = 2; 0.25, 0.125,
+    0.0625 mm) against two limits: the Richardson extrapolation of the ``finer`` series (edge
+    cells 1, 0.5, 0.25 mm, one progression per side) and that of the graded series itself —
+    two routes to the same limit. Under mpirun each rank simulates every size-th mesh."""
+    meshes = [PAPER, *FINER_REFERENCE, *GRADED_SERIES]
+    comm = MPI.COMM_WORLD
+    for mesh in meshes[comm.rank :: comm.size]:
+        measure_resumable(mesh, xy, mesh_dir, store)
+    comm.Barrier()
+    summary, surface, _ = against_richardson(meshes, FINER_REFERENCE, xy, mesh_dir, store)
+    graded_limit, graded_order = richardson(*(surface[m] for m in GRADED_SERIES))
+    for row, mesh in zip(summary["meshes"], meshes):
+        row["error_vs_graded_limit"] = band_changes(surface[mesh], graded_limit, xy)
+    return {
+        "command": "mpirun -n 2 python benchmarks/dic_convergence.py graded",
+        "seconds_note": "one simulation on one rank, the other rank simulating another mesh",
+        **summary,
+        "graded_reference": "Richardson extrapolation of " + ", ".join(label(m) for m in GRADED_SERIES),
+        "graded_observed_order": graded_order,
+        "limits_differ_by": band_changes(graded_limit, richardson(*(surface[m] for m in FINER_REFERENCE))[0], xy),
     }
 
 

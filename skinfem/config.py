@@ -35,6 +35,9 @@ def _check(ok: bool, key: str, message: str) -> None:
         raise ConfigError(f"config key '{key}': {message}")
 
 
+MAX_EDGE_GROWTH = 4.0  # largest growth factor of edge-graded cells (mesh.edge_growth)
+
+
 @dataclass(frozen=True)
 class MeshConfig:
     """Geometry and resolution of the layered block (mm).
@@ -44,6 +47,10 @@ class MeshConfig:
     0 < ``h_edge`` < ``h_membrane`` the cells at the membrane's edge are ``h_edge`` instead,
     graded geometrically to ``h_membrane`` at the centre and to ``h_far`` at the block edge
     (the strain concentrates at the edge; 0 or ``h_membrane``: no edge refinement).
+    ``edge_growth`` says how: 0 (default), one progression on each side whose last cell is
+    closest to ``h_membrane`` / ``h_far`` (neighbours within 1.3); > 1, cells that grow by this
+    factor away from the edge until they reach ``h_membrane`` / ``h_far``, then stay uniform —
+    a geometric grading towards the edge, where the continuum strain is singular.
     """
 
     length: float = 50.0
@@ -54,6 +61,7 @@ class MeshConfig:
     h_membrane: float = 0.5
     h_far: float = 2.0
     h_edge: float = 0.0
+    edge_growth: float = 0.0
     skin_layers: int = 1
     muscle_layers: int = 5
     membrane_layers: int = 1
@@ -66,12 +74,17 @@ class MeshConfig:
     def validate(self, prefix: str = "mesh") -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name != "h_edge":
+            if f.name not in ("h_edge", "edge_growth"):
                 _check(value > 0, f"{prefix}.{f.name}", f"must be > 0, got {value}")
         _check(
             0 <= self.h_edge <= self.h_membrane,
             f"{prefix}.h_edge",
             f"must be 0 (no edge refinement) or in (0, mesh.h_membrane], got {self.h_edge}",
+        )
+        _check(
+            self.edge_growth == 0 or 1 < self.edge_growth <= MAX_EDGE_GROWTH,
+            f"{prefix}.edge_growth",
+            f"must be 0 (one progression per side) or in (1, {MAX_EDGE_GROWTH:g}], got {self.edge_growth}",
         )
         _check(
             self.membrane_size < self.length,

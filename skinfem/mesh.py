@@ -6,7 +6,8 @@ grid is a tensor product, mirror-symmetric about x = 0 and y = 0:
 - in plane: uniform cells of ``h_membrane`` under the membrane footprint |x|, |y| <= a,
   geometrically graded outwards to about ``h_far`` at the block edge |x| or |y| = L/2; with
   ``h_edge`` > 0, cells of ``h_edge`` on both sides of the membrane edge |x| or |y| = a,
-  graded to ``h_membrane`` at the centre and to ``h_far`` at the block edge;
+  graded to ``h_membrane`` at the centre and to ``h_far`` at the block edge (one progression
+  per side, or with ``edge_growth`` > 1 growing by that factor until they reach those sizes);
 - through the thickness: ``skin_layers`` cells in the skin (z in [-h_s, 0]),
   ``muscle_layers`` in the muscle (z in [-h_s - h_m, -h_s]) and ``membrane_layers`` in the
   membrane (z in [0, t_mem] over the footprint; absent for ``membrane.model = "rigid"``).
@@ -56,6 +57,28 @@ def graded_sizes(length: float, h_start: float, h_end: float, max_ratio: float =
         sizes = h_start * _progression_ratio(length, h_start, n) ** np.arange(n)
         sizes *= length / sizes.sum()
     return sizes
+
+
+def capped_sizes(length: float, h_start: float, h_max: float, growth: float) -> np.ndarray:
+    """Cell sizes that start at ``h_start``, grow by ``growth`` while below ``h_max``, then fill
+    the rest of ``length`` with equal cells of at most ``h_max``: (n,) sizes in mm summing to
+    ``length``. A geometric grading towards the first cell: neighbours within ``growth`` of each
+    other in the graded part, within max(``growth``, 2) where it meets the equal cells (graded
+    cells are given up to the equal ones until the first equal cell is at least the last graded
+    one / ``growth``). Without room to reach ``h_max``, :func:`graded_sizes`."""
+    graded = [h_start]
+    while graded[-1] * growth < h_max:
+        graded.append(graded[-1] * growth)
+    if sum(graded) >= length:  # h_max is not reached: one progression of ratio <= growth
+        return graded_sizes(length, h_start, h_max, growth)
+    for k in range(len(graded), 0, -1):  # drop graded cells until the fill matches its neighbour
+        rest = length - sum(graded[:k])
+        n_fill = int(np.ceil(rest / h_max - 1e-9))
+        fill = [rest / n_fill] * n_fill if n_fill else []
+        if not fill or fill[0] * growth >= graded[k - 1] * (1 - 1e-9):
+            break
+    sizes = np.array(graded[:k] + fill)
+    return sizes * (length / sizes.sum())
 
 
 def _closest_progression(length: float, h_start: float, h_end: float) -> np.ndarray:
@@ -109,14 +132,19 @@ def inplane_coordinates(mesh_cfg: MeshConfig) -> np.ndarray:
     """Node coordinates (mm) along x (and y): symmetric about 0, refined under the membrane."""
     half = mesh_cfg.length / 2
     a = mesh_cfg.membrane_size / 2
-    h_edge, growth = edge_cell_size(mesh_cfg), EDGE_GROWTH if mesh_cfg.edge_refined else np.inf
+    h_edge = edge_cell_size(mesh_cfg)
+    if mesh_cfg.edge_refined and mesh_cfg.edge_growth > 1:
+        grade = lambda length, h_end: capped_sizes(length, h_edge, h_end, mesh_cfg.edge_growth)  # noqa: E731
+    else:
+        growth = EDGE_GROWTH if mesh_cfg.edge_refined else np.inf
+        grade = lambda length, h_end: graded_sizes(length, h_edge, h_end, growth)  # noqa: E731
     if mesh_cfg.edge_refined:
-        inner = graded_sizes(a, h_edge, mesh_cfg.h_membrane, growth)[::-1]  # centre -> edge
+        inner = grade(a, mesh_cfg.h_membrane)[::-1]  # centre -> edge
         center = np.concatenate([[0.0], np.cumsum(inner)])
         center = np.concatenate([-center[::-1], center[1:]]) * (a / center[-1])
     else:
         center = np.linspace(-a, a, _centre_cells(mesh_cfg) + 1)
-    outer = graded_sizes(half - a, h_edge, mesh_cfg.h_far, growth)
+    outer = grade(half - a, mesh_cfg.h_far)
     right = a + np.concatenate([[0.0], np.cumsum(outer)])
     right[-1] = half
     return np.concatenate([-right[::-1], center[1:-1], right])

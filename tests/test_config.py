@@ -43,6 +43,8 @@ def test_paper_designs_are_the_14_of_the_paper():
         ("[mesh]\nh_fra = 2.0\n", "mesh.h_fra"),
         ("[mesh]\nh_far = -2.0\n", "mesh.h_far"),
         ("[mesh]\nh_edge = 0.6\n", "mesh.h_edge"),
+        ("[mesh]\nedge_growth = 1.0\n", "mesh.edge_growth"),
+        ("[mesh]\nedge_growth = 5.0\n", "mesh.edge_growth"),
         ("[skin]\nbulk_ratio = 'x'\n", "skin.bulk_ratio"),
         ("[solver]\nelement_degree = 3\n", "solver.element_degree"),
         ("[membrane]\nE1 = -1.0\n", "membrane.E1"),

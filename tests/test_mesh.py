@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from skinfem.config import Config
-from skinfem.mesh import TAGS, build_mesh, graded_sizes, inplane_coordinates
+from skinfem.mesh import TAGS, build_mesh, capped_sizes, graded_sizes, inplane_coordinates
 
 
 def test_graded_sizes_fill_length_and_grow_to_h_far():
@@ -48,6 +48,40 @@ def test_graded_sizes_respect_a_largest_growth_ratio():
     assert sizes.sum() == pytest.approx(15.0, rel=1e-12)
     assert np.all(sizes[1:] / sizes[:-1] <= 1.3 + 1e-9) and sizes[0] == pytest.approx(0.25, rel=0.05)
     assert graded_sizes(15.0, 0.5, 2.0, max_ratio=10.0) == pytest.approx(graded_sizes(15.0, 0.5, 2.0))
+
+
+def test_capped_sizes_grow_geometrically_then_stay_uniform():
+    """The first cell is h_start, each next one ``growth`` times larger until h_max, then equal
+    cells of at most h_max fill the length exactly."""
+    sizes = capped_sizes(15.0, 0.125, 4.0, 2.0)
+    np.testing.assert_allclose(sizes[:5], [0.125, 0.25, 0.5, 1.0, 2.0], rtol=1e-12)
+    assert sizes.sum() == pytest.approx(15.0, rel=1e-12) and sizes.max() <= 4.0 + 1e-12
+    np.testing.assert_allclose(sizes[5:], sizes[-1], rtol=1e-12)
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # neighbours within max(growth, 2), cells <= h_max, first cell exact
+        growth, h0 = rng.uniform(1.1, 4.0), rng.uniform(0.01, 1.0)
+        h_max = h0 * rng.uniform(1.5, 100)
+        length = h_max * rng.uniform(3, 20)
+        sizes = capped_sizes(length, h0, h_max, growth)
+        ratio = np.maximum(sizes[1:] / sizes[:-1], sizes[:-1] / sizes[1:])
+        assert sizes.sum() == pytest.approx(length, rel=1e-12) and sizes[0] == pytest.approx(h0, rel=1e-12)
+        assert sizes.max() <= h_max * (1 + 1e-12) and ratio.max() <= max(growth, 2.0) * (1 + 1e-9)
+
+
+def test_edge_growth_grades_geometrically_towards_the_membrane_edge():
+    """mesh.edge_growth = 2: 0.125 mm cells at x = +-a, doubling away from it to h_membrane
+    (inside) and h_far (outside) — fewer cells than the one-progression grading of the same
+    edge size, symmetric, the block's ends kept."""
+    mesh = Config().mesh.__class__(h_membrane=2.0, h_far=4.0, h_edge=0.125, edge_growth=2.0)
+    x = inplane_coordinates(mesh)
+    np.testing.assert_allclose(x, -x[::-1], atol=1e-12)
+    h = np.diff(x)
+    edge = int(np.argmin(np.abs(x - 10.0)))
+    assert x[edge] == pytest.approx(10.0, abs=1e-12)
+    np.testing.assert_allclose(h[edge - 4 : edge + 4], [1.0, 0.5, 0.25, 0.125, 0.125, 0.25, 0.5, 1.0], rtol=1e-9)
+    assert h.max() <= 4.0 + 1e-9 and np.max(np.maximum(h[1:] / h[:-1], h[:-1] / h[1:])) <= 2.0 + 1e-9
+    assert x[0] == -25 and x[-1] == 25
+    assert len(x) < len(inplane_coordinates(dataclasses.replace(mesh, edge_growth=0.0)))
 
 
 def test_small_mesh_counts_and_groups(tmp_path):
