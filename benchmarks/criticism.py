@@ -10,7 +10,7 @@
 Data the checked model did not make: quadratic elements (Q2) on a mesh graded differently from
 ``small`` (far size 4 mm, 3 muscle layers; ``--data q2-edge``: also two skin layers and 0.5 mm
 cells at the membrane edge, finer than the quadratic check mesh, preset ``check``; ``--data
-q2-fine``: 0.25 mm edge cells and four muscle layers, finer than the ``converged`` preset; ``--data
+q2-fine``: 0.25 mm edge cells and four muscle layers, finer than the ``converged`` reference; ``--data
 q2-limit``: the Richardson limit of that mesh and the same with 0.5 mm edge cells, as converged as a
 real measurement), one material
 (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), two membranes ((0.05, 0.05),

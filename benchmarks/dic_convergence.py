@@ -23,8 +23,8 @@ that the limit is extrapolated from edge cells 1, 0.5 and 0.25 mm and the 0.5 mm
 ``converged`` preset, the check's ``converged`` reference) is measured against a limit it is not
 the finest member of; with a 0.35 mm candidate. ``graded``: edge cells that double away from
 the edge (``mesh.edge_growth`` = 2) at 0.25, 0.125 and 0.0625 mm, against the ``finer`` limit and
-against their own. The parts are merged into the same file.
-Numbers are recorded, not asserted.
+against their own, and 0.125 mm ones with far cells of 2 and 2.5 mm or growing by 1.5 and 1.4.
+The parts are merged into the same file. Numbers are recorded, not asserted.
 """
 
 from __future__ import annotations
@@ -206,6 +206,10 @@ PAPER_CANDIDATES = [(1, 0.5, 2.8, 4, 5, 0.25), (2, 2, 4, 3, 4, 1.0), (2, 2, 4, 2
 FINER_REFERENCE = [*PAPER_REFERENCE[1:], (2, 2, 4, 2, 4, 0.25)]
 FINER_CANDIDATES = [(2, 2, 4, 2, 4, 0.35)]
 GRADED_SERIES = [(2, 2, 4, 2, 4, h, 2.0) for h in (0.25, 0.125, 0.0625)]  # mesh.edge_growth = 2
+GRADED_CANDIDATES = [  # smaller far cells; slower growth
+    *[(2, 2, hf, 2, 4, 0.125, 2.0) for hf in (2.0, 2.5)],
+    *[(2, 2, 4, 2, 4, 0.125, growth) for growth in (1.5, 1.4)],
+]
 
 
 def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
@@ -280,23 +284,33 @@ def paper_errors(xy, mesh_dir, store: Path) -> dict:
     return {"command": "python benchmarks/dic_convergence.py paper", **summary, "skin_layers": layers}
 
 
-def finer_errors(xy, mesh_dir, store: Path) -> dict:
-    """The paper preset, the Q2 series with edge cells 1, 0.5, 0.25 mm and the candidates against
-    the Richardson extrapolation of that series, and each member's change from the previous one.
-    Under mpirun each rank first simulates every size-th mesh (one rank each) into ``store``."""
-    meshes = [PAPER, *FINER_REFERENCE, *FINER_CANDIDATES]
+SECONDS_ACROSS_RANKS = "one simulation on one rank, the other rank simulating another mesh"
+
+
+def across_ranks(meshes, series, xy, mesh_dir, store: Path):
+    """:func:`against_richardson` after each rank has simulated every size-th mesh into ``store``
+    (one simulation per rank at a time)."""
     comm = MPI.COMM_WORLD
     for mesh in meshes[comm.rank :: comm.size]:
         measure_resumable(mesh, xy, mesh_dir, store)
     comm.Barrier()
-    summary, surface, _ = against_richardson(meshes, FINER_REFERENCE, xy, mesh_dir, store)
+    return against_richardson(meshes, series, xy, mesh_dir, store)
+
+
+def finer_errors(xy, mesh_dir, store: Path) -> dict:
+    """The paper preset, the Q2 series with edge cells 1, 0.5, 0.25 mm and the candidates against
+    the Richardson extrapolation of that series, and each member's change from the previous one.
+    Under mpirun each rank first simulates every size-th mesh (one rank each) into ``store``."""
+    summary, surface, _ = across_ranks(
+        [PAPER, *FINER_REFERENCE, *FINER_CANDIDATES], FINER_REFERENCE, xy, mesh_dir, store
+    )
     changes = [
         {"from": label(a), "to": label(b), "change": band_changes(surface[b], surface[a], xy)}
         for a, b in zip(FINER_REFERENCE, FINER_REFERENCE[1:])
     ]
     return {
         "command": "mpirun -n 2 python benchmarks/dic_convergence.py finer",
-        "seconds_note": "one simulation on one rank, the other rank simulating another mesh",
+        "seconds_note": SECONDS_ACROSS_RANKS,
         **summary,
         "series_changes": changes,
     }
@@ -306,19 +320,16 @@ def graded_errors(xy, mesh_dir, store: Path) -> dict:
     """Edge cells that double away from the membrane edge (``mesh.edge_growth`` = 2; 0.25, 0.125,
     0.0625 mm) against two limits: the Richardson extrapolation of the ``finer`` series (edge
     cells 1, 0.5, 0.25 mm, one progression per side) and that of the graded series itself —
-    two routes to the same limit. Under mpirun each rank simulates every size-th mesh."""
-    meshes = [PAPER, *FINER_REFERENCE, *GRADED_SERIES]
-    comm = MPI.COMM_WORLD
-    for mesh in meshes[comm.rank :: comm.size]:
-        measure_resumable(mesh, xy, mesh_dir, store)
-    comm.Barrier()
-    summary, surface, _ = against_richardson(meshes, FINER_REFERENCE, xy, mesh_dir, store)
+    two routes to the same limit where the far cells are the same —, and candidates with smaller
+    far cells or a slower growth. Under mpirun each rank simulates every size-th mesh."""
+    meshes = [PAPER, *FINER_REFERENCE, *GRADED_SERIES, *GRADED_CANDIDATES]
+    summary, surface, _ = across_ranks(meshes, FINER_REFERENCE, xy, mesh_dir, store)
     graded_limit, graded_order = richardson(*(surface[m] for m in GRADED_SERIES))
     for row, mesh in zip(summary["meshes"], meshes):
         row["error_vs_graded_limit"] = band_changes(surface[mesh], graded_limit, xy)
     return {
         "command": "mpirun -n 2 python benchmarks/dic_convergence.py graded",
-        "seconds_note": "one simulation on one rank, the other rank simulating another mesh",
+        "seconds_note": SECONDS_ACROSS_RANKS,
         **summary,
         "graded_reference": "Richardson extrapolation of " + ", ".join(label(m) for m in GRADED_SERIES),
         "graded_observed_order": graded_order,

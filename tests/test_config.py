@@ -13,21 +13,26 @@ def test_presets_load_and_round_trip():
         assert config_from_toml(cfg.to_toml()) == cfg
 
 
-def test_converged_preset_is_the_mesh_measured_against_the_extrapolated_limit():
-    """The `converged` preset is the finest mesh of benchmarks/dic_convergence.py paper, whose
-    recorded error is below the paper mesh's in every band outside the membrane."""
+def test_converged_preset_is_within_two_percent_of_the_limit_in_every_region():
+    """The `converged` preset is the graded candidate of benchmarks/dic_convergence.py graded:
+    its recorded DIC-strain error against the Richardson limit of a series it is not part of
+    (edge cells 1, 0.5, 0.25 mm) is within 2 % over all points, in the 8-12 mm band and in the
+    far field, where the paper mesh's exceeds 20 %."""
     import json
     from pathlib import Path
 
     cfg = load_config("converged")
     m, degree = cfg.mesh, cfg.solver.element_degree
-    name = f"Q{degree} {m.h_membrane:g}/{m.h_far:g} mm, s{m.skin_layers} m{m.muscle_layers}, edge {m.h_edge:g} mm"
+    name = (
+        f"Q{degree} {m.h_membrane:g}/{m.h_far:g} mm, s{m.skin_layers} m{m.muscle_layers}, "
+        f"edge {m.h_edge:g} mm growth {m.edge_growth:g}"
+    )
     result = json.loads((Path(__file__).parents[1] / "benchmarks/results/dic_convergence.json").read_text())
-    errors = {row["mesh"]: row["error_vs_reference"] for row in result["paper"]["meshes"]}
+    errors = {row["mesh"]: row["error_vs_reference"] for row in result["graded"]["meshes"]}
     paper = load_config("paper").mesh
     paper_name = f"Q1 {paper.h_membrane:g}/{paper.h_far:g} mm, s{paper.skin_layers} m{paper.muscle_layers}"
-    for band in ("edge band (8-12 mm)", "far field (> 12 mm)"):
-        assert errors[name][band] < 0.05 < errors[paper_name][band]
+    for region in ("all points", "edge band (8-12 mm)", "far field (> 12 mm)"):
+        assert errors[name][region] < 0.02 and errors[paper_name][region] > 0.2
 
 
 def test_paper_designs_are_the_14_of_the_paper():

@@ -75,7 +75,8 @@ class Reference:
 
 
 # Measured shares (band / all / far field, reference against paper mesh): 1 mm edge cells
-# 10.9 / 34.2 %, 9.1 / 29.4 %, 3.3 / 25.8 %; 0.5 mm edge cells (the `converged` preset's mesh)
+# 10.9 / 34.2 %, 9.1 / 29.4 %, 3.3 / 25.8 %; 0.5 mm edge cells (the `converged` preset's mesh
+# before its edge cells were graded; the paper mesh's checks were validated with this one)
 # 4.8 / 34.2 %, 4.1 / 29.4 %, 1.9 / 25.8 %.
 REFERENCES = {
     "quadratic": Reference(h_edge=1.0, ratio=0.32),  # 131,757 dofs on the paper block
