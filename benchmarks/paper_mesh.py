@@ -83,11 +83,12 @@
         --results benchmarks/results/paper_mesh_mixed_unscaled
     python benchmarks/information_loss.py --study out/paper_mixed_noise_latent --design mixed
     # 10. step 9's mixed-design study at the three correlation lengths (run first with --lengths 5.0, then
-    #     completed with --resume: the cases keep their seeds), the noise-free case on all 20 test
-    #     materials, and the noise on the weights
+    #     completed with --resume: the cases keep their seeds; the 5 % cases last, listed after 10 % so
+    #     that the finished cases keep theirs), the noise-free case on all 20 test materials, and the
+    #     noise on the weights
     skinid study noise --data out/paper_mixed.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
         --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --emulator-error on --lengths 5.0 1.0 0.1 \
-        --levels 0.01 0.1 --pca-scaling none --n-components 5 --out out/paper_mixed_noise_latent_long
+        --levels 0.01 0.1 0.05 --pca-scaling none --n-components 5 --out out/paper_mixed_noise_latent_long
     skinid study test-set --emulator out/paper_mixed_noise_latent_long/cases/clean/emulator --data out/paper_mixed.h5 \
         --designs 0 --materials 74,79,82,88,89,98,99,106,115,119 --warmup 300 --draws 300 --emulator-error on \
         --out out/paper_mixed_clean20/cases/clean/posteriors
@@ -101,7 +102,7 @@
     python benchmarks/paper_mesh.py coverage --study out/paper_mixed_clean20 \
         --results benchmarks/results/paper_mesh_mixed_noise_cases/clean_20_materials
     python benchmarks/paper_mesh.py noise-weights --study out/paper_mixed_noise_latent_long \
-        --cases s1 s10 m1 m10 l1 l10 --results benchmarks/results/paper_mesh_mixed_noise_cases
+        --cases s1 s5 s10 m1 m5 m10 l1 l5 l10 --results benchmarks/results/paper_mesh_mixed_noise_cases
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
