@@ -23,7 +23,8 @@ that the limit is extrapolated from edge cells 1, 0.5 and 0.25 mm and the 0.5 mm
 ``converged`` preset, the check's ``converged`` reference) is measured against a limit it is not
 the finest member of; with a 0.35 mm candidate. ``graded``: edge cells that double away from
 the edge (``mesh.edge_growth`` = 2) at 0.25, 0.125 and 0.0625 mm, against the ``finer`` limit and
-against their own, and 0.125 mm ones with far cells of 2 and 2.5 mm or growing by 1.5 and 1.4.
+against their own, and 0.125 mm ones with far cells of 2 and 2.5 mm or growing by 1.5 and 1.4;
+the ``check`` preset's mesh and graded versions of it.
 The parts are merged into the same file. Numbers are recorded, not asserted.
 """
 
@@ -210,6 +211,12 @@ GRADED_CANDIDATES = [  # smaller far cells; slower growth
     *[(2, 2, hf, 2, 4, 0.125, 2.0) for hf in (2.0, 2.5)],
     *[(2, 2, 4, 2, 4, 0.125, growth) for growth in (1.5, 1.4)],
 ]
+CHECK_CANDIDATES = [  # the `check` preset's mesh (far cells 6 mm, two muscle layers) and graded ones
+    (2, 2, 6, 2, 2, 1.0),
+    (2, 2, 6, 2, 2, 0.25, 2.0),
+    (2, 2, 6, 2, 2, 0.125, 1.5),
+    (2, 2, 6, 2, 4, 0.25, 2.0),
+]
 
 
 def richardson(coarse, medium, fine) -> tuple[np.ndarray, float]:
@@ -321,8 +328,9 @@ def graded_errors(xy, mesh_dir, store: Path) -> dict:
     0.0625 mm) against two limits: the Richardson extrapolation of the ``finer`` series (edge
     cells 1, 0.5, 0.25 mm, one progression per side) and that of the graded series itself —
     two routes to the same limit where the far cells are the same —, and candidates with smaller
-    far cells or a slower growth. Under mpirun each rank simulates every size-th mesh."""
-    meshes = [PAPER, *FINER_REFERENCE, *GRADED_SERIES, *GRADED_CANDIDATES]
+    far cells or a slower growth, and the ``check`` preset's mesh with graded versions of it.
+    Under mpirun each rank simulates every size-th mesh."""
+    meshes = [PAPER, *FINER_REFERENCE, *GRADED_SERIES, *GRADED_CANDIDATES, *CHECK_CANDIDATES]
     summary, surface, _ = across_ranks(meshes, FINER_REFERENCE, xy, mesh_dir, store)
     graded_limit, graded_order = richardson(*(surface[m] for m in GRADED_SERIES))
     for row, mesh in zip(summary["meshes"], meshes):
