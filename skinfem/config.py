@@ -87,6 +87,11 @@ class MeshConfig:
             f"must be 0 (one progression per side) or in (1, {MAX_EDGE_GROWTH:g}], got {self.edge_growth}",
         )
         _check(
+            self.edge_growth == 0 or self.edge_refined,
+            f"{prefix}.edge_growth",
+            "grades the cells of mesh.h_edge: set mesh.h_edge in (0, mesh.h_membrane) too",
+        )
+        _check(
             self.membrane_size < self.length,
             f"{prefix}.membrane_size",
             f"must be smaller than mesh.length = {self.length}",

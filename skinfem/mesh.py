@@ -132,22 +132,26 @@ def inplane_coordinates(mesh_cfg: MeshConfig) -> np.ndarray:
     """Node coordinates (mm) along x (and y): symmetric about 0, refined under the membrane."""
     half = mesh_cfg.length / 2
     a = mesh_cfg.membrane_size / 2
-    h_edge = edge_cell_size(mesh_cfg)
-    if mesh_cfg.edge_refined and mesh_cfg.edge_growth > 1:
-        grade = lambda length, h_end: capped_sizes(length, h_edge, h_end, mesh_cfg.edge_growth)  # noqa: E731
-    else:
-        growth = EDGE_GROWTH if mesh_cfg.edge_refined else np.inf
-        grade = lambda length, h_end: graded_sizes(length, h_edge, h_end, growth)  # noqa: E731
     if mesh_cfg.edge_refined:
-        inner = grade(a, mesh_cfg.h_membrane)[::-1]  # centre -> edge
+        inner = _sizes_from_edge(mesh_cfg, a, mesh_cfg.h_membrane)[::-1]  # centre -> edge
         center = np.concatenate([[0.0], np.cumsum(inner)])
         center = np.concatenate([-center[::-1], center[1:]]) * (a / center[-1])
     else:
         center = np.linspace(-a, a, _centre_cells(mesh_cfg) + 1)
-    outer = grade(half - a, mesh_cfg.h_far)
+    outer = _sizes_from_edge(mesh_cfg, half - a, mesh_cfg.h_far)
     right = a + np.concatenate([[0.0], np.cumsum(outer)])
     right[-1] = half
     return np.concatenate([-right[::-1], center[1:-1], right])
+
+
+def _sizes_from_edge(mesh_cfg: MeshConfig, length: float, h_end: float) -> np.ndarray:
+    """Cell sizes (mm) from the membrane edge over ``length`` towards cells of ``h_end``: grown by
+    ``edge_growth`` then uniform, or one progression (neighbours within :data:`EDGE_GROWTH` when
+    the edge is refined)."""
+    h_edge = edge_cell_size(mesh_cfg)
+    if mesh_cfg.edge_refined and mesh_cfg.edge_growth > 1:
+        return capped_sizes(length, h_edge, h_end, mesh_cfg.edge_growth)
+    return graded_sizes(length, h_edge, h_end, EDGE_GROWTH if mesh_cfg.edge_refined else np.inf)
 
 
 @dataclass(frozen=True)
