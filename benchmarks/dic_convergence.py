@@ -24,7 +24,7 @@ that the limit is extrapolated from edge cells 1, 0.5 and 0.25 mm and the 0.5 mm
 the finest member of; with a 0.35 mm candidate. ``graded``: edge cells that double away from
 the edge (``mesh.edge_growth`` = 2) at 0.25, 0.125 and 0.0625 mm, against the ``finer`` limit and
 against their own, and 0.125 mm ones with far cells of 2 and 2.5 mm or growing by 1.5 and 1.4;
-the ``check`` preset's mesh and graded versions of it.
+the ``check`` preset's mesh and graded versions of it, one with its muscle layers doubled (4 -> 8).
 The parts are merged into the same file. Numbers are recorded, not asserted.
 """
 
@@ -216,6 +216,7 @@ CHECK_CANDIDATES = [  # the `check` preset's mesh (far cells 6 mm, two muscle la
     (2, 2, 6, 2, 2, 0.25, 2.0),
     (2, 2, 6, 2, 2, 0.125, 1.5),
     (2, 2, 6, 2, 4, 0.25, 2.0),
+    (2, 2, 6, 2, 8, 0.25, 2.0),  # muscle layers doubled, as the check's refinement does
 ]
 
 
@@ -342,6 +343,7 @@ def graded_errors(xy, mesh_dir, store: Path) -> dict:
         "graded_reference": "Richardson extrapolation of " + ", ".join(label(m) for m in GRADED_SERIES),
         "graded_observed_order": graded_order,
         "limits_differ_by": band_changes(graded_limit, richardson(*(surface[m] for m in FINER_REFERENCE))[0], xy),
+        "muscle_layers_4_to_8": band_changes(surface[CHECK_CANDIDATES[-1]], surface[CHECK_CANDIDATES[-2]], xy),
     }
 
 
