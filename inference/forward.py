@@ -325,7 +325,8 @@ class FEForward(ForwardModel):
         instead of a load ramp. A design ``other`` holds no states for (its fields came from
         ``cache_dir``, e.g. in a resumed check) is first solved by ``other`` at ``x``: one run on
         its mesh instead of a ramp on this one. Nothing is solved when this model already holds
-        its fields at ``x`` (:meth:`holds`; a resumed check's estimate).
+        its fields at ``x`` (:meth:`holds`; a resumed check's estimate). ``other``'s factorisation
+        is then freed, so that the two meshes' factors are not held at once.
 
         The first frame of a design is then solved by pseudo-transient continuation, later ones
         by Newton (up to ``TRANSFER_ITERATIONS``) from their guess plus the first frame's
@@ -342,7 +343,13 @@ class FEForward(ForwardModel):
                 self.continuation.record(j, transfer(other.continuation.states(j), other.model.V, self.model.V))
 
         collective(self.comm, interpolate)
+        other.release_factorisation()  # one mesh's factors held at a time on each rank
         self.transferred = True
+
+    def release_factorisation(self) -> None:
+        """Free this rank's model's kept LU factors (:meth:`skinfem.model.SkinModel.release_factorisation`);
+        its next simulation factorises again."""
+        self.model.release_factorisation()
 
     def holds(self, x: np.ndarray) -> bool:
         """Whether the fields at ``x`` are known without a simulation: in memory (also from a run

@@ -351,6 +351,13 @@ class SkinModel:
         then never."""
         self.set_snes_option("snes_lag_preconditioner", lag)
 
+    def release_factorisation(self) -> None:
+        """Free the kept LU factors, most of a model's memory (several GB for a quadratic mesh
+        of 10^5 dofs), e.g. while a model of another mesh runs on the same rank; the next Newton
+        solve factorises again."""
+        self.problem.solver.getKSP().getPC().reset()
+        self._rebuild_pending = True
+
     def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
         """One SNES solve of R(u) = 0 from the current state, factorising the
         tangent as ``policy`` says (with ``solver.refactor_krylov = 0`` at every Newton step

@@ -55,6 +55,25 @@ def test_reused_factorization_gives_the_newton_lu_fields(small_model, small_conf
     assert 1 <= factorizations < sum(reused.newton_iterations) / 2
 
 
+def test_a_released_factorisation_is_freed_and_made_again_for_the_same_fields(small_model):
+    """A check holds its own mesh's model while the refined mesh's runs: releasing the kept LU
+    factors leaves the solver without any (PETSc refuses to hand them out), and the next
+    simulation factorises again and finds the same fields to round-off."""
+    from skinfem.fenics import PETSc
+
+    design = Design(0.05, -0.05)
+    before = small_model.simulate(PARAMS, design)
+    pc = small_model.problem.solver.getKSP().getPC()
+    assert pc.getFactorMatrix().getType() == "mumps"
+    small_model.release_factorisation()
+    with pytest.raises(PETSc.Error):
+        pc.getFactorMatrix()
+    meter = WorkMeter(MPI.COMM_SELF)
+    after = small_model.simulate(PARAMS, design)
+    assert meter.lap().factorisations == small_model.factorizations >= 1
+    np.testing.assert_allclose(after.strain, before.strain, rtol=0, atol=1e-12)
+
+
 def test_the_work_meter_counts_what_the_model_counts(small_model):
     """PETSc's event log (a check's cost per phase) against the model's own counters: one
     tangent per Newton iteration, the factorisations the model made, and at least one

@@ -429,6 +429,7 @@ def compare(
     fine.continue_from(forward, baseline.x)  # Newton from the check mesh's fields, not a load ramp
     drift = mesh_error_drift(forward, fine, baseline.x, data.masks) if settings.mesh_drift else None
     disc = estimate(forward, fine, baseline.x, data, settings.refinement)
+    fine.release_factorisation()  # its runs are done: its factors need not wait for the collector
     disc.drifts = drift is not None
     work.refined, refined_s = meter.lap(), time.perf_counter() - refined_started
     model = CorrectedForward(forward, disc.shift, drift, None if drift is None else baseline.x)
