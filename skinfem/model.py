@@ -408,6 +408,7 @@ class SkinModel:
         stalls (docs/criticism.md §3). Records a :class:`~skinfem.pseudo_time.FarStart`;
         returns whether it converged (the state is then the equilibrium, else undefined)."""
         solver = self.config.solver
+        self.release_factorisation()  # one factorisation held at a time: pseudo-time makes its own
         solve = pseudo_transient(
             self.problem, solver.atol, refactor_krylov=solver.refactor_krylov, krylov_rtol=solver.krylov_rtol
         )

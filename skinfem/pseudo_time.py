@@ -123,12 +123,12 @@ def pseudo_transient(
     Collective; every rank gets the same result. ``first_step`` and ``budget`` default to
     ``FIRST_STEP`` and ``BUDGET``; ``refactor_krylov`` and ``krylov_rtol`` as in
     :class:`skinfem.config.SolverConfig` (0: a factorisation per step). The state is the last
-    accepted one."""
+    accepted one. The caller frees Newton's factorisation first
+    (:meth:`skinfem.model.SkinModel.release_factorisation`): one is held at a time."""
     first_step = FIRST_STEP if first_step is None else first_step
     budget = BUDGET if budget is None else budget
     snes, x, residual, tangent = problem.solver, problem.x, problem.b, problem.A
     u = problem.u
-    snes.getKSP().getPC().reset()  # free Newton's factorisation: one is held at a time (SNES redoes it)
     dolfinx.fem.petsc.assign(u, x)
     snes.computeFunction(x, residual)
     snes.computeJacobian(x, tangent, tangent)
