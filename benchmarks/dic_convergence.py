@@ -254,7 +254,7 @@ def against_richardson(meshes, series, xy, mesh_dir, store: Path):
     """Each mesh's DIC field (``measure_resumable``) and its error per region against the
     Richardson extrapolation of ``series`` (three of the meshes at halving edge cells).
     Returns (the results' common part: reference, order, field RMS, rows; surface fields,
-    top-cell fields)."""
+    top-cell fields; the extrapolated reference field)."""
     surface, cells, rows = {}, {}, []
     for mesh in meshes:
         surface[mesh], seconds, dofs, cells[mesh] = measure_resumable(mesh, xy, mesh_dir, store)
@@ -270,14 +270,14 @@ def against_richardson(meshes, series, xy, mesh_dir, store: Path):
         "field_rms": float(np.sqrt(np.mean(reference**2))),
         "meshes": rows,
     }
-    return summary, surface, cells
+    return summary, surface, cells, reference
 
 
 def paper_errors(xy, mesh_dir, store: Path) -> dict:
     """The paper preset and its refinements against a Richardson-extrapolated Q2 reference
     (edge cells 2, 1, 0.5 mm); the skin-layer series compares both observables."""
     meshes = [*PAPER_SKIN_LAYERS, *PAPER_REFERENCE, *PAPER_CANDIDATES]
-    summary, surface, cells = against_richardson(meshes, PAPER_REFERENCE, xy, mesh_dir, store)
+    summary, surface, cells, _ = against_richardson(meshes, PAPER_REFERENCE, xy, mesh_dir, store)
     layers = []
     for previous, mesh in zip(PAPER_SKIN_LAYERS, PAPER_SKIN_LAYERS[1:]):
         layers.append(
@@ -309,7 +309,7 @@ def finer_errors(xy, mesh_dir, store: Path) -> dict:
     """The paper preset, the Q2 series with edge cells 1, 0.5, 0.25 mm and the candidates against
     the Richardson extrapolation of that series, and each member's change from the previous one.
     Under mpirun each rank first simulates every size-th mesh (one rank each) into ``store``."""
-    summary, surface, _ = across_ranks(
+    summary, surface, _, _ = across_ranks(
         [PAPER, *FINER_REFERENCE, *FINER_CANDIDATES], FINER_REFERENCE, xy, mesh_dir, store
     )
     changes = [
@@ -332,7 +332,7 @@ def graded_errors(xy, mesh_dir, store: Path) -> dict:
     far cells or a slower growth, and the ``check`` preset's mesh with graded versions of it.
     Under mpirun each rank simulates every size-th mesh."""
     meshes = [PAPER, *FINER_REFERENCE, *GRADED_SERIES, *GRADED_CANDIDATES, *CHECK_CANDIDATES]
-    summary, surface, _ = across_ranks(meshes, FINER_REFERENCE, xy, mesh_dir, store)
+    summary, surface, _, finer_limit = across_ranks(meshes, FINER_REFERENCE, xy, mesh_dir, store)
     graded_limit, graded_order = richardson(*(surface[m] for m in GRADED_SERIES))
     for row, mesh in zip(summary["meshes"], meshes):
         row["error_vs_graded_limit"] = band_changes(surface[mesh], graded_limit, xy)
@@ -342,7 +342,7 @@ def graded_errors(xy, mesh_dir, store: Path) -> dict:
         **summary,
         "graded_reference": "Richardson extrapolation of " + ", ".join(label(m) for m in GRADED_SERIES),
         "graded_observed_order": graded_order,
-        "limits_differ_by": band_changes(graded_limit, richardson(*(surface[m] for m in FINER_REFERENCE))[0], xy),
+        "limits_differ_by": band_changes(graded_limit, finer_limit, xy),
         "muscle_layers_4_to_8": band_changes(surface[CHECK_CANDIDATES[-1]], surface[CHECK_CANDIDATES[-2]], xy),
     }
 
