@@ -703,6 +703,29 @@ def test_a_drifting_correction_is_the_better_mesh_wherever_the_parameters_go(lin
         CheckSettings(mesh_drift=True, discretisation=False)
 
 
+def test_a_better_mesh_without_a_solution_is_one_collective_error(linear_world, grid_xy):
+    """The two-mesh estimate's better mesh fails at the calibrated parameters (or the check's
+    mesh, for the drift): a :class:`CollectiveError` raised on every rank, which the command line
+    prints once, not a ValueError that each rank prints before an MPI abort."""
+    from inference.criticism.discretisation import DiscretisationFailure, estimate, mesh_error_drift
+    from skinfem.parallel import CollectiveError
+
+    class Unsolvable(ExactLinearForward):
+        def evaluate_many(self, points):
+            return [None for _ in points]
+
+    data, cal = linear_data(linear_world, grid_xy, {}, seed=0)
+    solvable = ExactLinearForward(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
+    unsolvable = Unsolvable(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
+    with pytest.raises(DiscretisationFailure, match="better mesh") as caught:
+        estimate(solvable, unsolvable, cal.x, data, "uniform")
+    assert isinstance(caught.value, CollectiveError)
+    with pytest.raises(DiscretisationFailure, match="better mesh"):
+        mesh_error_drift(solvable, unsolvable, cal.x, data.masks)
+    with pytest.raises(DiscretisationFailure, match="check's mesh"):
+        mesh_error_drift(unsolvable, solvable, cal.x, data.masks)
+
+
 def test_refinement_halves_every_size_including_the_membrane_edge(small_config):
     from inference.criticism.discretisation import refined_config
     from skinfem.mesh import edge_cell_size

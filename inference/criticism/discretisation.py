@@ -44,6 +44,7 @@ from inference.criticism.data import Data, ModelError
 from inference.forward import ForwardModel, prestressing_parameters
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
+from skinfem.parallel import CollectiveError
 
 # Observed order of convergence of the DIC surface strain under these refinements, by element
 # degree (docs/criticism.md §2, benchmarks/results/dic_convergence.json): Q1 on `small`, uniform
@@ -86,6 +87,12 @@ REFINEMENTS = ("uniform", "edge", *REFERENCES)
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
 UNCONVERGED_AMPLITUDE = 2.5  # a correction beyond first-order extrapolation (2) and its usual sd
 BETTER_MESH_FAILS = "the discretisation estimate's better mesh does not converge at the calibrated parameters"
+
+
+class DiscretisationFailure(CollectiveError, ValueError):
+    """A mesh of the two-mesh estimate has no solution at the calibrated parameters. Raised on
+    every rank, as the forward model agrees on its failures across ranks, so that the command
+    line prints it once and every rank ends with the same exit code."""
 
 
 def richardson_limit(coarser: np.ndarray, finer: np.ndarray, order: float) -> np.ndarray:
@@ -329,6 +336,8 @@ def correlation_fit(field: np.ndarray, xy: np.ndarray, masks: np.ndarray, h: flo
         pairs = cKDTree(points).query_pairs(edges[-1], output_type="ndarray")
         d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
         k = np.searchsorted(edges, d, side="right") - 1
+        inside = k < len(products)  # a pair exactly 4 h apart (points on a grid) lies on the last edge
+        pairs, k = pairs[inside], k[inside]
         np.add.at(products, k, np.sum(values[pairs[:, 0]] * values[pairs[:, 1]], axis=1))
         np.add.at(squares, k, 0.5 * np.sum(values[pairs[:, 0]] ** 2 + values[pairs[:, 1]] ** 2, axis=1))
     used = squares > 0
@@ -349,11 +358,11 @@ def estimate(
     ``fine`` is ``coarse``'s mesh after ``refinement`` (:func:`refined_config`).
 
     Raises:
-        ValueError: the refined model does not converge at x.
+        DiscretisationFailure: the refined model does not converge at x.
     """
     f_coarse, f_fine = coarse(x), fine(x)
     if f_fine is None:
-        raise ValueError(BETTER_MESH_FAILS)
+        raise DiscretisationFailure(BETTER_MESH_FAILS)
     shift = np.where(data.masks[..., None], f_fine - f_coarse, 0.0)
     m = data.masks
     measured_rms = float(np.sqrt(np.mean(data.fields[m] ** 2)))
@@ -452,15 +461,15 @@ def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, ma
     (docs/criticism.md §4, §23).
 
     Raises:
-        ValueError: the better mesh does not converge at x.
+        DiscretisationFailure: either mesh does not converge at x.
     """
     names = list(coarse.names)
     (fine_result,) = fine.evaluate_with_jacobian([x], names)
     if fine_result is None:
-        raise ValueError(BETTER_MESH_FAILS)
+        raise DiscretisationFailure(BETTER_MESH_FAILS)
     (coarse_result,) = coarse.evaluate_with_jacobian([x], names)
     if coarse_result is None:
-        raise ValueError("the check's mesh does not converge at its own calibrated parameters")
+        raise DiscretisationFailure("the check's mesh does not converge at its own calibrated parameters")
     drift = np.where(masks[..., None, None], fine_result[1] - coarse_result[1], 0.0)
     switch = coarse.index(prestressing_parameters(names))
     if not np.any(x[switch]):
