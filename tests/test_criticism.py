@@ -714,6 +714,9 @@ def test_a_better_mesh_without_a_solution_is_one_collective_error(linear_world, 
         def evaluate_many(self, points):
             return [None for _ in points]
 
+        def evaluate_with_jacobian(self, points, names):
+            return [None for _ in points]
+
     data, cal = linear_data(linear_world, grid_xy, {}, seed=0)
     solvable = ExactLinearForward(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
     unsolvable = Unsolvable(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
@@ -724,6 +727,26 @@ def test_a_better_mesh_without_a_solution_is_one_collective_error(linear_world, 
         mesh_error_drift(solvable, unsolvable, cal.x, data.masks)
     with pytest.raises(DiscretisationFailure, match="check's mesh"):
         mesh_error_drift(unsolvable, solvable, cal.x, data.masks)
+
+
+def test_the_mesh_error_is_judged_against_the_noise_the_check_uses():
+    """A carried error of 0.8 stated-noise sd exceeds half the noise; once the noise statement
+    finds the noise twice the stated sd it is 0.4 sd of the noise used: resolved, said in both
+    units, and the edge size it asks for is the one for half the noise used."""
+    from inference.criticism.discretisation import DiscretisationError
+
+    disc = DiscretisationError(
+        mesh="Q2", refined="Q2, finer", radius=2.0, h_edge=1.0, shift=np.zeros((1, 4, 3)), order=1.2,
+        ratio=0.4, basis="measured order", relative=0.02, sigma=2.0, quadratic=True,
+    )  # fmt: skip
+    assert disc.remaining_sigma == pytest.approx(0.8) and not disc.resolved
+    assert "exceeds half the noise" in disc.summary() and "estimated" not in disc.summary()
+    stated_edge = disc.suggested_h_edge()
+    disc.noise_factor = 2.0
+    assert disc.carried_sigma == pytest.approx(0.4) and disc.resolved
+    assert "0.8 sigma of the stated noise, 0.4 of the estimated" in disc.summary()
+    assert "exceeds half the noise" not in disc.summary()
+    assert disc.suggested_h_edge() == pytest.approx(stated_edge * 2 ** (1 / 1.2))
 
 
 def test_refinement_halves_every_size_including_the_membrane_edge(small_config):

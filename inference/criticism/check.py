@@ -283,7 +283,9 @@ def run_check(
     work.compare = meter.lap()
     if disc is not None and not noise_statement.consistent:  # the baseline was refitted with the estimated noise
         disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
-    carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
+    if disc is not None:
+        disc.noise_factor = noise_statement.factor
+    carried = 0.0 if disc is None else disc.carried_sigma
     shift = None if disc is None else disc.shift
     log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
     diagnosis = _diagnose(model, baseline, data, settings, membrane, (carried, shift))  # also its metrics

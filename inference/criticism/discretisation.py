@@ -215,12 +215,15 @@ class DiscretisationError:
         basis: what that share rests on, in words.
         relative: RMS of the check mesh's error (|shift| / (1 - ratio)) / RMS of the measured
             field.
-        sigma: RMS of the check mesh's error in noise sd units.
+        sigma: RMS of the check mesh's error in units of the stated noise sd.
         amplitude, amplitude_sd: the multiple of the shift the calibrated, corrected model uses
             (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
         quadratic: the check's mesh has quadratic elements and two or more skin layers already
             (its advice is then only a finer edge).
         drifts: the correction follows the parameters to first order (:func:`mesh_error_drift`).
+        noise_factor: the sd of the noise the check uses over the stated sd (> 1 when the
+            noise statement found the stated sd too small); whether the error is resolved is
+            judged against the noise used.
     """
 
     mesh: str
@@ -237,6 +240,7 @@ class DiscretisationError:
     amplitude_sd: float | None = None
     quadratic: bool = False
     drifts: bool = False
+    noise_factor: float = 1.0
 
     @property
     def remaining_factor(self) -> float:
@@ -251,8 +255,13 @@ class DiscretisationError:
 
     @property
     def remaining_sigma(self) -> float:
-        """RMS of the corrected model's remaining error in noise sd units."""
+        """RMS of the corrected model's remaining error in units of the stated noise sd."""
         return self.sigma * self.ratio
+
+    @property
+    def carried_sigma(self) -> float:
+        """RMS of the corrected model's remaining error in units of the noise sd used."""
+        return self.remaining_sigma / self.noise_factor
 
     @property
     def remaining_relative(self) -> float:
@@ -285,13 +294,19 @@ class DiscretisationError:
 
     @property
     def resolved(self) -> bool:
-        """The corrected model's error is below half the noise."""
-        return self.remaining_sigma <= MESH_RESOLVED_SIGMA
+        """The corrected model's error is below half the noise used."""
+        return self.carried_sigma <= MESH_RESOLVED_SIGMA
 
     def suggested_h_edge(self) -> float:
-        """Membrane-edge cell size [mm] whose error would be half the noise (convergence of
+        """Membrane-edge cell size [mm] whose error would be half the noise used (convergence of
         order :attr:`order` in the edge size)."""
-        return self.h_edge * (0.5 / max(self.sigma, 1e-12)) ** (1.0 / self.order)
+        return self.h_edge * (0.5 / max(self.sigma / self.noise_factor, 1e-12)) ** (1.0 / self.order)
+
+    def _of_the_noise_used(self) -> str:
+        """The carried error against the estimated noise, when the check uses one."""
+        if self.noise_factor == 1.0:
+            return ""
+        return f" of the stated noise, {self.carried_sigma:.1f} of the estimated"
 
     def summary(self) -> str:
         text = (
@@ -300,7 +315,8 @@ class DiscretisationError:
             f"(two-mesh estimate with {self.refined}); "
             f"the model is corrected by a fitted multiple of the shift"
             f"{' (which follows the parameters to first order)' if self.drifts else ''} and its remaining error "
-            f"({self.remaining_sigma:.1f} sigma, {self.basis}) is carried next to the noise."
+            f"({self.remaining_sigma:.1f} sigma{self._of_the_noise_used()}, {self.basis}) is carried next to "
+            "the noise."
         )
         if self.amplitude is not None:
             unconverged = f"; above {UNCONVERGED_AMPLITUDE:g}: the better mesh is itself far from converged"

@@ -29,7 +29,7 @@ def discretisation_lines(result: CheckResult) -> list[str]:
         "",
         disc.summary(),
         "",
-        "| | RMS, share of the field | RMS [noise sd] |",
+        "| | RMS, share of the field | RMS [stated noise sd] |",
         "|---|---|---|",
         f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
         f"| after the fitted correction (carried in the covariance) | {disc.remaining_relative:.1%} "
