@@ -595,6 +595,37 @@ def test_a_candidate_the_skin_compensates_is_fitted_and_named_before_a_partial_o
     assert blind.confounding > 0.8 and blind.delta_bic < scores["compressibility"].delta_bic
 
 
+class SaturatingForward(LinearForward):
+    """The linear world in which one effect's field saturates: sat tanh(x / sat) times its column,
+    so that its linearised test at the null promises far more than a fit of it can give."""
+
+    def __init__(self, world: LinearForward, effect: str, column: np.ndarray, sat: float):
+        A = world.A.copy()
+        self.k, self.column, self.sat = world.names.index(effect), column, sat
+        A[:, self.k] = 0.0
+        super().__init__(A, world.names, world.bounds, world.null)
+
+    def evaluate_many(self, points):
+        linear = super().evaluate_many(points)
+        bent = [self.sat * np.tanh(x[self.k] / self.sat) * self.column.reshape(f.shape) for f, x in zip(linear, points)]
+        return [f + b for f, b in zip(linear, bent)]
+
+
+def test_a_named_candidate_is_a_fitted_one(linear_world, grid_xy):
+    """A hidden compressibility change; the skin thickness's signature at the null is the
+    baseline's residual itself, so its linearised test ranks it first, but its field saturates
+    and, fitted (one confirmation fit), it explains little. Compressibility, strong but not
+    fitted at first, then leads: it is fitted before it is named, and it explains the residual."""
+    data, cal = linear_data(linear_world, grid_xy, {"compressibility.log_factor": 2.0}, seed=5)
+    residual = (data.fields - linear_world(cal.x)).ravel()
+    world = SaturatingForward(linear_world, "skin_thickness.log_factor", residual, sat=0.05)
+    d = diagnose(world, cal, data, ["skin_thickness", "compressibility"], MEMBRANE, confirm=1, max_iterations=30)
+    scores = {s.effect: s for s in d.scores}
+    assert scores["skin_thickness"].fitted and scores["skin_thickness"].share_explained < 0.5
+    assert d.best.effect == "compressibility" and d.best.fitted and d.best.share_explained > 0.9
+    assert d.fits.keys() == {"skin_thickness", "compressibility"}
+
+
 def mesh_like_case(world: LinearForward, xy: np.ndarray, hidden: dict[str, float]):
     """The linear world checked with a corrected model whose shift is compressibility's column
     plus an equal part v outside every candidate's span; the data's mesh error is that shift plus
