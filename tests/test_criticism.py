@@ -958,6 +958,12 @@ def test_the_hotspot_is_where_a_local_defect_sits(linear_world, grid_xy):
     d = diagnose(linear_world, cal, data, list(EFFECTS), MEMBRANE, confirm=2, max_iterations=20)
     assert d.metrics.structured and d.best is None
     assert f"({spot.x:.1f}, {spot.y:.1f}) mm" in d.text
+    # the same residual seen twice at the same points (two observations): the same disc
+    twice = Data(
+        np.concatenate([fields, fields]), np.concatenate([data.masks] * 2), np.concatenate([data.xy] * 2), data.noise
+    )
+    fit_twice = dataclasses.replace(cal, model_fields=np.concatenate([cal.model_fields] * 2))
+    assert residual_hotspot(fit_twice, twice) == spot
 
 
 def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_world, grid_xy, tmp_path):
