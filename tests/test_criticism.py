@@ -1041,6 +1041,7 @@ def linear_check(world, data, baseline, added):
         gauge_text="a grid",
         fe_seconds_per_run=0.5,
         timings=CheckTimings(
+            setup_fe_runs=5,
             compare_s=2.0,
             compare_fe_runs=4,
             diagnose_fe_runs=9,

@@ -126,7 +126,8 @@ class PhaseWork:
 class CheckTimings:
     """Wall seconds, FE simulations and linear-algebra work of each phase of a check."""
 
-    setup_s: float = 0.0
+    setup_s: float = 0.0  # the FE model's set-up and the starting point
+    setup_fe_runs: int = 0  # the spread start's runs (none from the emulator or a given start)
     compare_s: float = 0.0  # baseline calibration(s), discretisation estimate, noise statement
     compare_fe_runs: int = 0
     refined_s: float = 0.0  # the refined mesh's simulations (part of compare)
@@ -269,7 +270,7 @@ def run_check(
     )
     data = Data.from_points(measurements, noise)
     start, start_from = starting_point(forward, data, settings, emulator, measurements)
-    timings.setup_s, work.setup = time.perf_counter() - t0, meter.lap()
+    timings.setup_s, timings.setup_fe_runs, work.setup = time.perf_counter() - t0, forward.runs, meter.lap()
     log.info("calibrating the baseline on %s (start: %s)", describe_mesh(config), start_from)
     membrane = settings.membrane(config)
 

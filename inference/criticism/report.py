@@ -292,7 +292,9 @@ def cost_lines(result: CheckResult) -> list[str]:
         "",
         "## Cost",
         "",
-        f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
+        f"setup {t.setup_s:.0f} s ({t.setup_fe_runs} FE runs for the starting point), "
+        f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs; with the refined mesh's "
+        f"{t.refined_fe_runs} runs in {t.refined_s:.0f} s), diagnose {t.diagnose_s:.0f} s "
         f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
         f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused), "
         f"next round {t.next_round_s:.0f} s ({t.next_round_fe_runs} runs); "
