@@ -56,11 +56,14 @@ class CheckSettings:
         candidates: effects to test (default: every registered effect).
         add: effects to add, in order (each version includes the previous ones).
         increments: load increments of the FE runs (default: the configuration's).
-        confirm: how many top candidates are calibrated for real during the diagnosis.
+        confirm: how many top candidates are calibrated for real during the diagnosis (besides
+            those whose linearised test the skin's re-tuning blinds, and a strong candidate the
+            fits leave leading; :func:`~inference.criticism.diagnosis.diagnose`).
         band: half-width [mm] of the membrane edge strip of the regions (default: 2 cells).
         max_iterations: trial steps per calibration.
         gauge: the DIC strain window the measurement was made with.
-        spacing: the measured points are thinned to one per square of this side [mm].
+        spacing: the side [mm] of the squares the measured points were thinned to, one point
+            each (stated in the report; the thinning is the caller's, e.g. the command line's).
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
         refinement: the better mesh of that estimate, ``"uniform"``, ``"edge"``, ``"quadratic"``
             or ``"converged"`` (see :func:`inference.criticism.discretisation.refined_config`).

@@ -135,8 +135,8 @@ class Data:
     """Measured fields of the observations at their points, with the noise and model-error terms.
 
     Attributes:
-        fields: (n_obs, n_pts, 3) log strain, NaN off the mask (observations zero-padded to the
-            largest point count).
+        fields: (n_obs, n_pts, 3) log strain, NaN off the mask (observations NaN-padded to the
+            largest point count; their xy zero-padded).
         masks: (n_obs, n_pts) True where a point is measured.
         xy: (n_obs, n_pts, 2) points [mm].
         noise: the stated measurement noise.

@@ -311,7 +311,7 @@ class Diagnosis:
     """One diagnosis of a calibrated model (:func:`diagnose`): its residual's metrics, regions
     (ranked) and hotspot, the candidates' scores (best first), the confirmation fits by effect,
     the verdict's text, its FE runs and wall seconds, and the larger mesh error a candidate had
-    to beat (None when the residual is consistent)."""
+    to beat (None when the residual is consistent or no model error is carried)."""
 
     metrics: ResidualMetrics
     regions: list[RegionResidual]

@@ -36,7 +36,7 @@ class ResidualMetrics:
 
     rmse: float
     rmse_by_component: dict[str, float]  # "xx", "yy", "xy"
-    noise_rms: float  # RMS of the stated noise sd
+    noise_rms: float  # RMS of the noise sd used (the stated one, or the noise statement's estimate)
     chi2: float
     dof: int
     chi2_per_dof: float
