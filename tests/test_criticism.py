@@ -94,6 +94,15 @@ def test_calibration_equals_least_squares_and_its_covariance(linear_world, grid_
     assert cal.cov == pytest.approx(np.linalg.inv(A.T @ A), rel=1e-4)
 
 
+def test_a_calibration_whose_parameters_move_nothing_stays_at_its_start(linear_world, grid_xy):
+    """Every free parameter's forward difference is zero (a model they do not act on): the fit
+    ends at its start, no singular step is solved."""
+    data, _ = linear_data(linear_world, grid_xy, {}, seed=2)
+    inert = LinearForward(np.zeros_like(linear_world.A), linear_world.names, linear_world.bounds, linear_world.null)
+    cal = calibrate(inert, data, np.full(len(inert.names), 0.5), list(range(5)), max_iterations=5)
+    np.testing.assert_array_equal(cal.x, np.full(len(inert.names), 0.5))
+
+
 def test_calibration_at_a_bound_equals_bounded_least_squares_in_few_runs(linear_world, grid_xy):
     """The unconstrained optimum lies outside the box in two parameters: the fit must land on
     the bounded least-squares solution (scipy's lsq_linear, an independent route) and stop
