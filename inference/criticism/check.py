@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 # The uncorrected baseline only places the mesh's error estimate (the corrected fit follows):
 # it stops once a step lowers chi^2 by less than this share of it.
 PRE_CORRECTION_TOLERANCE = 0.01
+SPREAD_POINTS = 5  # the calibration start without an emulator: the best of the box centre and 4 others
 
 
 @dataclass
@@ -223,10 +224,10 @@ def starting_point(
     if emulator is not None:
         start[:N_SKIN] = on_root(forward.comm, lambda: emulator_start(emulator, measurements))
         return start, "emulator's posterior mode"
-    return spread_start(forward, data), "best of 5 spread points"
+    return spread_start(forward, data), f"best of {SPREAD_POINTS} spread points"
 
 
-def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -> np.ndarray:
+def spread_start(forward: ForwardModel, data: Data, n: int = SPREAD_POINTS, seed: int = 0) -> np.ndarray:
     """(p,) the best of the box centre and n - 1 Latin-hypercube points of the skin box
     (effects at their null values), by whitened chi^2; points whose FE run fails are skipped."""
     from scipy.stats import qmc
