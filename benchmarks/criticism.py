@@ -310,7 +310,7 @@ def run_case(case: str, seed: int, fields, points, args, comm) -> dict:
     return row
 
 
-PHASES = ("compare", "refined", "diagnose", "add", "next_round")
+PHASES = ("setup", "compare", "refined", "diagnose", "add", "next_round")
 BEST_CANDIDATE = ("effect", "delta_bic", "share_explained", "confounding", "fitted", "mesh_share", "mesh_like")
 CANDIDATE_TEST = ("effect", "statistic", "dof", "p_value", "delta_bic", "fitted", "mesh_share", "mesh_like")
 

@@ -162,6 +162,87 @@ def quantiles(q: np.ndarray, n: int, shape: float, rate: float) -> dict:
     }
 
 
+def rows_and_weights(emulator, data, materials) -> tuple:
+    """Every converged (design, frame) row of ``materials`` of ``data``: rows, unit-box inputs (n, 7),
+    PC weights (n, G) and load scale s (n,) as the emulator's fit makes them."""
+    from skinfem.io import COMPONENTS
+    from surrogate.emulator import TrainingRows, unit_span
+
+    rows = TrainingRows.from_dataset(data, materials)
+    weights = np.concatenate(
+        [emulator.pcas[c].transform(rows.fields[..., COMPONENTS.index(c)]) for c in emulator.components], 1
+    )
+    x = (rows.inputs - emulator.lower) / unit_span(emulator.lower, emulator.upper)
+    return rows, x, weights, emulator.held_out_excess.load_scale(rows.inputs[:, 5:])
+
+
+def shift_and_residual(error, variance, jacobian, materials, scale, tau2) -> tuple[np.ndarray, np.ndarray]:
+    """C (5, 5) of the materials' parameter shifts, as the emulator's fit estimates it from its
+    cross-validation (:func:`surrogate.error_model.fit_parameter_shift`) but from any errors, and
+    what the shifts leave of the errors (n, G)."""
+    from surrogate.error_model import material_shifts, shift_covariance
+
+    shifts, fit_errors, _, residual = material_shifts(error, variance, jacobian, materials, scale, tau2)
+    return shift_covariance(shifts, fit_errors), residual
+
+
+def fresh_against_cross_validation(emulator, data, training) -> dict:
+    """Is the shift covariance C the cross-validation fits (left-out training materials, GPs
+    refitted on the other folds) the size of fresh materials' shifts under the emulator's own
+    GPs? Same estimator on both; also each PC weight's mean square error, GP variance and what the
+    shifts leave of the error at the last frame on both, and over all rows what they leave as a
+    share of the GP variance."""
+    from skinfem.config import PARAM_NAMES
+    from surrogate.emulator import fold_refit, gp_rows
+    from surrogate.error_model import cross_validated_errors, mean_jacobian
+
+    tau2 = np.array(emulator.held_out_excess.variance)
+    fresh_rows, x, weights, scale = rows_and_weights(emulator, data, np.flatnonzero(data.split == 1))
+    mean, var, jac = mean_jacobian(emulator.gps, x)
+    fresh_c, fresh_left = shift_and_residual(weights - mean, var, jac, fresh_rows.index[:, 0], scale, tau2)
+    train_rows, xt, wt, st = rows_and_weights(emulator, training, np.flatnonzero(training.split == 0))
+    p = emulator.provenance
+    subset = gp_rows(len(train_rows.index), p.gp_fraction, None, p.seed)
+    materials = train_rows.index[:, 0]
+    refit = fold_refit(emulator.sklearn_gps, p.seed)
+    cv_error, cv_var, cv_jac = cross_validated_errors(refit, xt, wt, materials, subset)
+    cv_c, cv_left = shift_and_residual(cv_error, cv_var, cv_jac, materials, st, tau2)
+    last_f, last_t = fresh_rows.index[:, 2] == len(data.t) - 1, train_rows.index[:, 2] == len(training.t) - 1
+    return {
+        "parameters": list(PARAM_NAMES),
+        "shift_sd_unit_box": {
+            "emulator": np.sqrt(np.diag(emulator.held_out_excess.parameter_shift.covariance)).round(4).tolist(),
+            "cross_validation_recomputed": np.sqrt(np.diag(cv_c)).round(4).tolist(),
+            "fresh": np.sqrt(np.diag(fresh_c)).round(4).tolist(),
+        },
+        "fresh_shift_covariance": fresh_c.tolist(),
+        "last_frame_per_weight": {
+            "mean_square_error_cross_validation": (cv_error[last_t] ** 2).mean(0).round(5).tolist(),
+            "mean_square_error_fresh": ((weights - mean)[last_f] ** 2).mean(0).round(5).tolist(),
+            "gp_variance_cross_validation": cv_var[last_t].mean(0).round(5).tolist(),
+            "gp_variance_fresh": var[last_f].mean(0).round(5).tolist(),
+            "left_by_the_shift_cross_validation": (cv_left[last_t] ** 2).mean(0).round(5).tolist(),
+            "left_by_the_shift_fresh": (fresh_left[last_f] ** 2).mean(0).round(5).tolist(),
+        },
+        "left_by_the_shift_over_gp_variance_all_rows": {
+            "cross_validation": ((cv_left**2).mean(0) / cv_var.mean(0)).round(3).tolist(),
+            "fresh": ((fresh_left**2).mean(0) / var.mean(0)).round(3).tolist(),
+        },
+        "materials": {"fresh": int(np.sum(data.split == 1)), "training": int(np.sum(training.split == 0))},
+    }
+
+
+def write_oracle(emulator: Path, out: Path, covariance: list) -> None:
+    """A copy of the emulator folder whose parameter shift's C is ``covariance`` (5 x 5); refuses
+    an existing ``out``."""
+    import shutil
+
+    shutil.copytree(emulator, out)  # FileExistsError for an existing folder
+    meta = json.loads((out / "meta.json").read_text())
+    meta["held_out_excess"]["parameter_shift"]["covariance"] = covariance
+    (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
 def main() -> None:
     from inference.coverage import cases_of
     from skinfem.config import PARAM_NAMES
@@ -172,8 +253,28 @@ def main() -> None:
     parser.add_argument("--emulator", type=Path, required=True)
     parser.add_argument("--data", type=Path, required=True, help="dataset of fresh test materials")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "material_scale.json")
+    parser.add_argument(
+        "--fresh-shift",
+        type=Path,
+        metavar="TRAINING.h5",
+        help="only compare fresh materials' shifts with the cross-validation's (the emulator's training data)",
+    )
+    parser.add_argument(
+        "--oracle",
+        type=Path,
+        metavar="DIR",
+        help="with --fresh-shift: also write a copy of the emulator whose C is the fresh materials' own (a diagnostic)",
+    )
     args = parser.parse_args()
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
+    if args.fresh_shift is not None:
+        result = {"emulator": str(args.emulator), "data": str(args.data), "training": str(args.fresh_shift)}
+        result.update(fresh_against_cross_validation(emulator, data, StrainDataset.open(args.fresh_shift)))
+        args.results.write_text(json.dumps(result, indent=2) + "\n")
+        if args.oracle is not None:
+            write_oracle(args.emulator, args.oracle, result["fresh_shift_covariance"])
+        print(json.dumps(result, indent=1))
+        return
     shape, rate = emulator.held_out_excess.material_scale
     tests = [int(i) for i in np.flatnonzero(data.split == 1)]
     n_designs = len(data.designs)

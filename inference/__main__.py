@@ -332,6 +332,11 @@ def _check_check_options(args) -> None:
         raise ValueError(f"--noise-length must be a number >= 0 mm, got {args.noise_length}")
     if not (math.isfinite(args.noise_nugget) and 0 <= args.noise_nugget <= 1):
         raise ValueError(f"--noise-nugget must be in [0, 1], got {args.noise_nugget}")
+    if args.noise_length > 0 and args.noise_nugget == 0:
+        raise ValueError(
+            "--noise-length > 0 needs --noise-nugget > 0 (e.g. 0.3): a noise without an uncorrelated part "
+            "has a singular correlation between close points, and whitening by it would amplify misfits"
+        )
     if args.increments is not None and args.increments < 1:
         raise ValueError(f"--increments must be >= 1, got {args.increments}")
     if args.confirm < 0:

@@ -209,18 +209,21 @@ def shift_covariance(shifts: np.ndarray, fit_errors: np.ndarray) -> np.ndarray:
     return (vectors * np.clip(values, 0, None)) @ vectors.T
 
 
-def fit_parameter_shift(
+def material_shifts(
     error: np.ndarray, variance: np.ndarray, jacobian: np.ndarray, materials: np.ndarray, scale: np.ndarray, tau2
-) -> ParameterShift:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each material's shift delta_m: the least-squares fit of J delta to its errors whitened by
-    the GP variance plus the held-out excess tau_g^2 s^2; C from the shifts less their fit
-    errors (:func:`shift_covariance`); the excess of the residual (scaled by n_m / (n_m - 5)
-    for the 5 fitted values) refitted as :func:`excess_variance`.
+    the GP variance plus the held-out excess tau_g^2 s^2.
 
     Args:
         error, variance: (n, G) held-out errors and GP variances (:func:`cross_validated_errors`).
         jacobian: (n, G, 5) the GP mean's derivative in the five material inputs (unit box).
         materials: (n,) material of each row; scale: (n,) load s; tau2: (G,) held-out excess.
+
+    Returns:
+        the shifts (M, 5), their fit errors' covariances (M, 5, 5) and absorbed shares (M,) of
+        the M materials, and what the shifts leave of the errors (n, G), scaled by n_m / (n_m - 5)
+        for the 5 fitted values.
     """
     sd = np.sqrt(variance + np.asarray(tau2) * scale[:, None] ** 2)
     residual, shifts, fit_errors, absorbed = np.empty_like(error), [], [], []
@@ -232,8 +235,18 @@ def fit_parameter_shift(
         fit_errors.append(fit_error)
         absorbed.append(share)
         residual[rows] = (error[rows] - jacobian[rows] @ delta) * np.sqrt(e.size / (e.size - 5))  # 5 fitted
+    return np.array(shifts), np.array(fit_errors), np.array(absorbed), residual
+
+
+def fit_parameter_shift(
+    error: np.ndarray, variance: np.ndarray, jacobian: np.ndarray, materials: np.ndarray, scale: np.ndarray, tau2
+) -> ParameterShift:
+    """The materials' shifts (:func:`material_shifts`, arguments as there); C from the shifts
+    less their fit errors (:func:`shift_covariance`); the excess of what they leave refitted as
+    :func:`excess_variance`."""
+    shifts, fit_errors, absorbed, residual = material_shifts(error, variance, jacobian, materials, scale, tau2)
     tau2_left = [excess_variance(residual[:, g], variance[:, g], scale) for g in range(error.shape[1])]
-    covariance = shift_covariance(np.array(shifts), np.array(fit_errors))
+    covariance = shift_covariance(shifts, fit_errors)
     return ParameterShift(tuple(map(tuple, covariance.tolist())), tuple(tau2_left), float(np.mean(absorbed)))
 
 

@@ -364,6 +364,11 @@ CASES = {
     ),
     "check-noise-length-negative": (f"{CHECK_M} --noise-length -1", "--noise-length must be a number >= 0 mm", None),
     "check-noise-nugget-above-1": (f"{CHECK_M} --noise-nugget 2", "--noise-nugget must be in [0, 1]", None),
+    "check-smooth-noise-without-nugget": (
+        f"{CHECK_M} --noise-length 2",
+        "--noise-length > 0 needs --noise-nugget > 0",
+        None,
+    ),
     "check-spacing-zero": (f"{CHECK_M} --spacing 0", "the point spacing must be > 0 mm", None),
     "check-dic-window-negative": (f"{CHECK_M} --dic-window -1", "the DIC strain window must be > 0 mm", None),
     "check-unknown-candidate": (f"{CHECK_M} --candidates bogus", "unknown effect 'bogus'; known effects:", None),

@@ -94,6 +94,15 @@ def test_calibration_equals_least_squares_and_its_covariance(linear_world, grid_
     assert cal.cov == pytest.approx(np.linalg.inv(A.T @ A), rel=1e-4)
 
 
+def test_a_calibration_whose_parameters_move_nothing_stays_at_its_start(linear_world, grid_xy):
+    """Every free parameter's forward difference is zero (a model they do not act on): the fit
+    ends at its start, no singular step is solved."""
+    data, _ = linear_data(linear_world, grid_xy, {}, seed=2)
+    inert = LinearForward(np.zeros_like(linear_world.A), linear_world.names, linear_world.bounds, linear_world.null)
+    cal = calibrate(inert, data, np.full(len(inert.names), 0.5), list(range(5)), max_iterations=5)
+    np.testing.assert_array_equal(cal.x, np.full(len(inert.names), 0.5))
+
+
 def test_calibration_at_a_bound_equals_bounded_least_squares_in_few_runs(linear_world, grid_xy):
     """The unconstrained optimum lies outside the box in two parameters: the fit must land on
     the bounded least-squares solution (scipy's lsq_linear, an independent route) and stop
@@ -595,6 +604,37 @@ def test_a_candidate_the_skin_compensates_is_fitted_and_named_before_a_partial_o
     assert blind.confounding > 0.8 and blind.delta_bic < scores["compressibility"].delta_bic
 
 
+class SaturatingForward(LinearForward):
+    """The linear world in which one effect's field saturates: sat tanh(x / sat) times its column,
+    so that its linearised test at the null promises far more than a fit of it can give."""
+
+    def __init__(self, world: LinearForward, effect: str, column: np.ndarray, sat: float):
+        A = world.A.copy()
+        self.k, self.column, self.sat = world.names.index(effect), column, sat
+        A[:, self.k] = 0.0
+        super().__init__(A, world.names, world.bounds, world.null)
+
+    def evaluate_many(self, points):
+        linear = super().evaluate_many(points)
+        bent = [self.sat * np.tanh(x[self.k] / self.sat) * self.column.reshape(f.shape) for f, x in zip(linear, points)]
+        return [f + b for f, b in zip(linear, bent)]
+
+
+def test_a_named_candidate_is_a_fitted_one(linear_world, grid_xy):
+    """A hidden compressibility change; the skin thickness's signature at the null is the
+    baseline's residual itself, so its linearised test ranks it first, but its field saturates
+    and, fitted (one confirmation fit), it explains little. Compressibility, strong but not
+    fitted at first, then leads: it is fitted before it is named, and it explains the residual."""
+    data, cal = linear_data(linear_world, grid_xy, {"compressibility.log_factor": 2.0}, seed=5)
+    residual = (data.fields - linear_world(cal.x)).ravel()
+    world = SaturatingForward(linear_world, "skin_thickness.log_factor", residual, sat=0.05)
+    d = diagnose(world, cal, data, ["skin_thickness", "compressibility"], MEMBRANE, confirm=1, max_iterations=30)
+    scores = {s.effect: s for s in d.scores}
+    assert scores["skin_thickness"].fitted and scores["skin_thickness"].share_explained < 0.5
+    assert d.best.effect == "compressibility" and d.best.fitted and d.best.share_explained > 0.9
+    assert d.fits.keys() == {"skin_thickness", "compressibility"}
+
+
 def mesh_like_case(world: LinearForward, xy: np.ndarray, hidden: dict[str, float]):
     """The linear world checked with a corrected model whose shift is compressibility's column
     plus an equal part v outside every candidate's span; the data's mesh error is that shift plus
@@ -701,6 +741,52 @@ def test_a_drifting_correction_is_the_better_mesh_wherever_the_parameters_go(lin
 
     with pytest.raises(ValueError, match="--mesh-drift needs the discretisation estimate"):
         CheckSettings(mesh_drift=True, discretisation=False)
+
+
+def test_a_better_mesh_without_a_solution_is_one_collective_error(linear_world, grid_xy):
+    """The two-mesh estimate's better mesh fails at the calibrated parameters (or the check's
+    mesh, for the drift): a :class:`CollectiveError` raised on every rank, which the command line
+    prints once, not a ValueError that each rank prints before an MPI abort."""
+    from inference.criticism.discretisation import DiscretisationFailure, estimate, mesh_error_drift
+    from skinfem.parallel import CollectiveError
+
+    class Unsolvable(ExactLinearForward):
+        def evaluate_many(self, points):
+            return [None for _ in points]
+
+        def evaluate_with_jacobian(self, points, names):
+            return [None for _ in points]
+
+    data, cal = linear_data(linear_world, grid_xy, {}, seed=0)
+    solvable = ExactLinearForward(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
+    unsolvable = Unsolvable(linear_world.A, linear_world.names, linear_world.bounds, linear_world.null)
+    with pytest.raises(DiscretisationFailure, match="better mesh") as caught:
+        estimate(solvable, unsolvable, cal.x, data, "uniform")
+    assert isinstance(caught.value, CollectiveError)
+    with pytest.raises(DiscretisationFailure, match="better mesh"):
+        mesh_error_drift(solvable, unsolvable, cal.x, data.masks)
+    with pytest.raises(DiscretisationFailure, match="check's mesh"):
+        mesh_error_drift(unsolvable, solvable, cal.x, data.masks)
+
+
+def test_the_mesh_error_is_judged_against_the_noise_the_check_uses():
+    """A carried error of 0.8 stated-noise sd exceeds half the noise; once the noise statement
+    finds the noise twice the stated sd it is 0.4 sd of the noise used: resolved, said in both
+    units, and the edge size it asks for is the one for half the noise used."""
+    from inference.criticism.discretisation import DiscretisationError
+
+    disc = DiscretisationError(
+        mesh="Q2", refined="Q2, finer", radius=2.0, h_edge=1.0, shift=np.zeros((1, 4, 3)), order=1.2,
+        ratio=0.4, basis="measured order", relative=0.02, sigma=2.0, quadratic=True,
+    )  # fmt: skip
+    assert disc.remaining_sigma == pytest.approx(0.8) and not disc.resolved
+    assert "exceeds half the noise" in disc.summary() and "estimated" not in disc.summary()
+    stated_edge = disc.suggested_h_edge()
+    disc.noise_factor = 2.0
+    assert disc.carried_sigma == pytest.approx(0.4) and disc.resolved
+    assert "0.8 sigma of the stated noise, 0.4 of the estimated" in disc.summary()
+    assert "exceeds half the noise" not in disc.summary()
+    assert disc.suggested_h_edge() == pytest.approx(stated_edge * 2 ** (1 / 1.2))
 
 
 def test_refinement_halves_every_size_including_the_membrane_edge(small_config):
@@ -881,6 +967,12 @@ def test_the_hotspot_is_where_a_local_defect_sits(linear_world, grid_xy):
     d = diagnose(linear_world, cal, data, list(EFFECTS), MEMBRANE, confirm=2, max_iterations=20)
     assert d.metrics.structured and d.best is None
     assert f"({spot.x:.1f}, {spot.y:.1f}) mm" in d.text
+    # the same residual seen twice at the same points (two observations): the same disc
+    twice = Data(
+        np.concatenate([fields, fields]), np.concatenate([data.masks] * 2), np.concatenate([data.xy] * 2), data.noise
+    )
+    fit_twice = dataclasses.replace(cal, model_fields=np.concatenate([cal.model_fields] * 2))
+    assert residual_hotspot(fit_twice, twice) == spot
 
 
 def test_the_next_round_finds_the_second_effect_once_the_first_is_added(linear_world, grid_xy, tmp_path):
@@ -958,6 +1050,7 @@ def linear_check(world, data, baseline, added):
         gauge_text="a grid",
         fe_seconds_per_run=0.5,
         timings=CheckTimings(
+            setup_fe_runs=5,
             compare_s=2.0,
             compare_fe_runs=4,
             diagnose_fe_runs=9,

@@ -227,6 +227,8 @@ def calibrate(
     J, damping = problem.jacobian(z, r, step) if J is None else J, 1e-3
     chi2_path = [float(r @ r)]
     for _ in range(max_iterations):
+        if not np.any(J):  # no free parameter moves the fields (e.g. every difference failed)
+            break
         dz, held = bounded_step(J, r, z, damping)
         tolerance = max(CHI2_TOLERANCE, relative_tolerance * float(r @ r))
         if gauss_newton_gain(J[:, ~held], r) < tolerance:  # even the full step would not be visible
@@ -242,12 +244,9 @@ def calibrate(
         decrease = r @ r - r_new @ r_new
         z, r, damping = z_new, r_new, damping / 3
         chi2_path.append(float(r @ r))
-        if J_new is not None:
-            J = J_new
+        J = problem.jacobian(z, r, step) if J_new is None else J_new  # at the new point: its covariance
         if decrease < tolerance:  # chi^2 no longer moves by a statistically visible amount
             break
-        if J_new is None:
-            J = problem.jacobian(z, r, step)
     x = problem.point(z)
     cov = np.linalg.pinv(J.T @ J, rcond=1e-12) * np.outer(problem.span, problem.span)
     fields = problem.fields[z.tobytes()]

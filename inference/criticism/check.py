@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 # The uncorrected baseline only places the mesh's error estimate (the corrected fit follows):
 # it stops once a step lowers chi^2 by less than this share of it.
 PRE_CORRECTION_TOLERANCE = 0.01
+SPREAD_POINTS = 5  # the calibration start without an emulator: the best of the box centre and 4 others
 
 
 @dataclass
@@ -56,11 +57,14 @@ class CheckSettings:
         candidates: effects to test (default: every registered effect).
         add: effects to add, in order (each version includes the previous ones).
         increments: load increments of the FE runs (default: the configuration's).
-        confirm: how many top candidates are calibrated for real during the diagnosis.
+        confirm: how many top candidates are calibrated for real during the diagnosis (besides
+            those whose linearised test the skin's re-tuning blinds, and a strong candidate the
+            fits leave leading; :func:`~inference.criticism.diagnosis.diagnose`).
         band: half-width [mm] of the membrane edge strip of the regions (default: 2 cells).
         max_iterations: trial steps per calibration.
         gauge: the DIC strain window the measurement was made with.
-        spacing: the measured points are thinned to one per square of this side [mm].
+        spacing: the side [mm] of the squares the measured points were thinned to, one point
+            each (stated in the report; the thinning is the caller's, e.g. the command line's).
         discretisation: estimate, correct and carry the mesh's own error (refined mesh run).
         refinement: the better mesh of that estimate, ``"uniform"``, ``"edge"``, ``"quadratic"``
             or ``"converged"`` (see :func:`inference.criticism.discretisation.refined_config`).
@@ -126,7 +130,8 @@ class PhaseWork:
 class CheckTimings:
     """Wall seconds, FE simulations and linear-algebra work of each phase of a check."""
 
-    setup_s: float = 0.0
+    setup_s: float = 0.0  # the FE model's set-up and the starting point
+    setup_fe_runs: int = 0  # the spread start's runs (none from the emulator or a given start)
     compare_s: float = 0.0  # baseline calibration(s), discretisation estimate, noise statement
     compare_fe_runs: int = 0
     refined_s: float = 0.0  # the refined mesh's simulations (part of compare)
@@ -219,10 +224,10 @@ def starting_point(
     if emulator is not None:
         start[:N_SKIN] = on_root(forward.comm, lambda: emulator_start(emulator, measurements))
         return start, "emulator's posterior mode"
-    return spread_start(forward, data), "best of 5 spread points"
+    return spread_start(forward, data), f"best of {SPREAD_POINTS} spread points"
 
 
-def spread_start(forward: ForwardModel, data: Data, n: int = 5, seed: int = 0) -> np.ndarray:
+def spread_start(forward: ForwardModel, data: Data, n: int = SPREAD_POINTS, seed: int = 0) -> np.ndarray:
     """(p,) the best of the box centre and n - 1 Latin-hypercube points of the skin box
     (effects at their null values), by whitened chi^2; points whose FE run fails are skipped."""
     from scipy.stats import qmc
@@ -269,7 +274,7 @@ def run_check(
     )
     data = Data.from_points(measurements, noise)
     start, start_from = starting_point(forward, data, settings, emulator, measurements)
-    timings.setup_s, work.setup = time.perf_counter() - t0, meter.lap()
+    timings.setup_s, timings.setup_fe_runs, work.setup = time.perf_counter() - t0, forward.runs, meter.lap()
     log.info("calibrating the baseline on %s (start: %s)", describe_mesh(config), start_from)
     membrane = settings.membrane(config)
 
@@ -283,7 +288,9 @@ def run_check(
     work.compare = meter.lap()
     if disc is not None and not noise_statement.consistent:  # the baseline was refitted with the estimated noise
         disc.amplitude, disc.amplitude_sd = float(baseline.x[-1]), float(baseline.sd[-1])
-    carried = 0.0 if disc is None else disc.remaining_sigma / noise_statement.factor  # [sd of the noise used]
+    if disc is not None:
+        disc.noise_factor = noise_statement.factor
+    carried = 0.0 if disc is None else disc.carried_sigma
     shift = None if disc is None else disc.shift
     log.info("diagnosing the residual: %d candidate effects", len(settings.candidates))
     diagnosis = _diagnose(model, baseline, data, settings, membrane, (carried, shift))  # also its metrics

@@ -17,17 +17,18 @@ import numpy as np
 from inference.noise import correlation_matrix, noise_fields
 
 
-@dataclass
+@dataclass(frozen=True)
 class NoiseModel:
-    """Stated measurement noise: sd (3,) per strain component, correlation length [mm], nugget."""
+    """Stated measurement noise: sd (3,) per strain component, correlation length [mm], nugget.
+    Frozen: its cache of matrix roots holds for these values only."""
 
     sd: np.ndarray
     length: float = 0.0
     nugget: float = 1.0
-    _roots: dict = field(default_factory=dict, repr=False)  # cached matrix (inverse) square roots
+    _roots: dict = field(default_factory=dict, repr=False, compare=False)  # cached matrix (inverse) square roots
 
     def __post_init__(self):
-        self.sd = np.asarray(self.sd, dtype=float)
+        object.__setattr__(self, "sd", np.asarray(self.sd, dtype=float))
         if self.sd.shape != (3,) or not np.all(self.sd > 0):
             raise ValueError(f"noise sd must be three positive numbers (xx, yy, xy), got {self.sd}")
         correlation_matrix(np.zeros((1, 2)), self.length, self.nugget)  # validates both
@@ -135,8 +136,8 @@ class Data:
     """Measured fields of the observations at their points, with the noise and model-error terms.
 
     Attributes:
-        fields: (n_obs, n_pts, 3) log strain, NaN off the mask (observations zero-padded to the
-            largest point count).
+        fields: (n_obs, n_pts, 3) log strain, NaN off the mask (observations NaN-padded to the
+            largest point count; their xy zero-padded).
         masks: (n_obs, n_pts) True where a point is measured.
         xy: (n_obs, n_pts, 2) points [mm].
         noise: the stated measurement noise.

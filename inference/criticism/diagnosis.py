@@ -311,7 +311,7 @@ class Diagnosis:
     """One diagnosis of a calibrated model (:func:`diagnose`): its residual's metrics, regions
     (ranked) and hotspot, the candidates' scores (best first), the confirmation fits by effect,
     the verdict's text, its FE runs and wall seconds, and the larger mesh error a candidate had
-    to beat (None when the residual is consistent)."""
+    to beat (None when the residual is consistent or no model error is carried)."""
 
     metrics: ResidualMetrics
     regions: list[RegionResidual]
@@ -345,7 +345,9 @@ def diagnose(
 
     If the residual is structured, the ``confirm`` best candidates by linearised Delta BIC
     (only those with strong evidence) are calibrated for real, and their fitted Delta BIC and
-    share of the excess residual replace the linearised ones; so are (``confirm`` > 0) the
+    share of the excess residual replace the linearised ones (should the fits fall behind a
+    strong candidate not yet fitted, it is fitted too, so that a named candidate is a fitted
+    one); so are (``confirm`` > 0) the
     candidates whose linearised test is blind, more than ``CONFOUNDED`` of their signature
     absorbed by the skin parameters: a skin that compensates a stiffer muscle at the
     calibrated point leaves it no local signature, yet the effect, fitted, can explain more
@@ -373,14 +375,14 @@ def diagnose(
         testable = [s for s in scores if not (unresolved and s.resembles_mesh_error())]
         strong = [s for s in testable if s.delta_bic > STRONG_EVIDENCE][:confirm]
         blind = [s for s in testable if confirm and s.confounding > CONFOUNDED and s not in strong]
-        for s in strong + blind:
-            fit = fits[s.effect] = extend(forward, cal, data, s.effect, **fit_kwargs)
-            drop = cal.chi2 - fit.chi2
-            s.delta_bic = drop - s.dof * math.log(n)
-            s.share_explained = float(np.clip((drop - s.dof) / excess, 0, 1)) if excess > 0 else 0.0
-            s.estimate = {q: float(fit.x[forward.names.index(q)]) for q in s.parameters}
-            s.fitted = True
-        scores.sort(key=lambda s: -s.delta_bic)
+        pending = strong + blind
+        while pending:  # until the leading candidate is a fitted one (or none is strong)
+            for s in pending:
+                fits[s.effect] = _confirm(forward, cal, data, s, excess, n, **fit_kwargs)
+            scores.sort(key=lambda s: -s.delta_bic)
+            lead = next((s for s in scores if any(s is t for t in testable)), None)
+            unfitted = confirm and lead is not None and not lead.fitted and lead.delta_bic > STRONG_EVIDENCE
+            pending = [lead] if unfitted else []
     larger = larger_model_error(cal, data) if metrics.structured else None
     for s in scores:
         enough = (
@@ -393,6 +395,20 @@ def diagnose(
     text = verdict(metrics, scores, regions, hotspot, carried_sigma, added, larger)
     runs, seconds = forward.runs - runs0, time.perf_counter() - start
     return Diagnosis(metrics, regions, hotspot, scores, fits, text, runs, seconds, larger)
+
+
+def _confirm(
+    forward: ForwardModel, cal: Calibration, data: Data, s: CandidateScore, excess: float, n: int, **fit_kwargs
+) -> Calibration:
+    """Calibrate candidate ``s`` for real and replace its linearised Delta BIC, share of the
+    ``excess`` chi^2 (over ``n`` data) and estimate by the fitted ones; returns the fit."""
+    fit = extend(forward, cal, data, s.effect, **fit_kwargs)
+    drop = cal.chi2 - fit.chi2
+    s.delta_bic = drop - s.dof * math.log(n)
+    s.share_explained = float(np.clip((drop - s.dof) / excess, 0, 1)) if excess > 0 else 0.0
+    s.estimate = {q: float(fit.x[forward.names.index(q)]) for q in s.parameters}
+    s.fitted = True
+    return fit
 
 
 def verdict(

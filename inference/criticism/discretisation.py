@@ -44,6 +44,7 @@ from inference.criticism.data import Data, ModelError
 from inference.forward import ForwardModel, prestressing_parameters
 from skinfem.config import Config
 from skinfem.mesh import edge_cell_size
+from skinfem.parallel import CollectiveError
 
 # Observed order of convergence of the DIC surface strain under these refinements, by element
 # degree (docs/criticism.md §2, benchmarks/results/dic_convergence.json): Q1 on `small`, uniform
@@ -86,6 +87,12 @@ REFINEMENTS = ("uniform", "edge", *REFERENCES)
 MESH_RESOLVED_SIGMA = 0.5  # a remaining mesh error below half the noise: the mesh is resolved
 UNCONVERGED_AMPLITUDE = 2.5  # a correction beyond first-order extrapolation (2) and its usual sd
 BETTER_MESH_FAILS = "the discretisation estimate's better mesh does not converge at the calibrated parameters"
+
+
+class DiscretisationFailure(CollectiveError, ValueError):
+    """A mesh of the two-mesh estimate has no solution at the calibrated parameters. Raised on
+    every rank, as the forward model agrees on its failures across ranks, so that the command
+    line prints it once and every rank ends with the same exit code."""
 
 
 def richardson_limit(coarser: np.ndarray, finer: np.ndarray, order: float) -> np.ndarray:
@@ -208,12 +215,15 @@ class DiscretisationError:
         basis: what that share rests on, in words.
         relative: RMS of the check mesh's error (|shift| / (1 - ratio)) / RMS of the measured
             field.
-        sigma: RMS of the check mesh's error in noise sd units.
+        sigma: RMS of the check mesh's error in units of the stated noise sd.
         amplitude, amplitude_sd: the multiple of the shift the calibrated, corrected model uses
             (:class:`CorrectedForward`) and its Laplace sd; None before that calibration.
         quadratic: the check's mesh has quadratic elements and two or more skin layers already
             (its advice is then only a finer edge).
         drifts: the correction follows the parameters to first order (:func:`mesh_error_drift`).
+        noise_factor: the sd of the noise the check uses over the stated sd (> 1 when the
+            noise statement found the stated sd too small); whether the error is resolved is
+            judged against the noise used.
     """
 
     mesh: str
@@ -230,6 +240,7 @@ class DiscretisationError:
     amplitude_sd: float | None = None
     quadratic: bool = False
     drifts: bool = False
+    noise_factor: float = 1.0
 
     @property
     def remaining_factor(self) -> float:
@@ -244,8 +255,13 @@ class DiscretisationError:
 
     @property
     def remaining_sigma(self) -> float:
-        """RMS of the corrected model's remaining error in noise sd units."""
+        """RMS of the corrected model's remaining error in units of the stated noise sd."""
         return self.sigma * self.ratio
+
+    @property
+    def carried_sigma(self) -> float:
+        """RMS of the corrected model's remaining error in units of the noise sd used."""
+        return self.remaining_sigma / self.noise_factor
 
     @property
     def remaining_relative(self) -> float:
@@ -278,13 +294,19 @@ class DiscretisationError:
 
     @property
     def resolved(self) -> bool:
-        """The corrected model's error is below half the noise."""
-        return self.remaining_sigma <= MESH_RESOLVED_SIGMA
+        """The corrected model's error is below half the noise used."""
+        return self.carried_sigma <= MESH_RESOLVED_SIGMA
 
     def suggested_h_edge(self) -> float:
-        """Membrane-edge cell size [mm] whose error would be half the noise (convergence of
+        """Membrane-edge cell size [mm] whose error would be half the noise used (convergence of
         order :attr:`order` in the edge size)."""
-        return self.h_edge * (0.5 / max(self.sigma, 1e-12)) ** (1.0 / self.order)
+        return self.h_edge * (0.5 / max(self.sigma / self.noise_factor, 1e-12)) ** (1.0 / self.order)
+
+    def _of_the_noise_used(self) -> str:
+        """The carried error against the estimated noise, when the check uses one."""
+        if self.noise_factor == 1.0:
+            return ""
+        return f" of the stated noise, {self.carried_sigma:.1f} of the estimated"
 
     def summary(self) -> str:
         text = (
@@ -293,7 +315,8 @@ class DiscretisationError:
             f"(two-mesh estimate with {self.refined}); "
             f"the model is corrected by a fitted multiple of the shift"
             f"{' (which follows the parameters to first order)' if self.drifts else ''} and its remaining error "
-            f"({self.remaining_sigma:.1f} sigma, {self.basis}) is carried next to the noise."
+            f"({self.remaining_sigma:.1f} sigma{self._of_the_noise_used()}, {self.basis}) is carried next to "
+            "the noise."
         )
         if self.amplitude is not None:
             unconverged = f"; above {UNCONVERGED_AMPLITUDE:g}: the better mesh is itself far from converged"
@@ -329,6 +352,8 @@ def correlation_fit(field: np.ndarray, xy: np.ndarray, masks: np.ndarray, h: flo
         pairs = cKDTree(points).query_pairs(edges[-1], output_type="ndarray")
         d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
         k = np.searchsorted(edges, d, side="right") - 1
+        inside = k < len(products)  # a pair exactly 4 h apart (points on a grid) lies on the last edge
+        pairs, k = pairs[inside], k[inside]
         np.add.at(products, k, np.sum(values[pairs[:, 0]] * values[pairs[:, 1]], axis=1))
         np.add.at(squares, k, 0.5 * np.sum(values[pairs[:, 0]] ** 2 + values[pairs[:, 1]] ** 2, axis=1))
     used = squares > 0
@@ -349,11 +374,11 @@ def estimate(
     ``fine`` is ``coarse``'s mesh after ``refinement`` (:func:`refined_config`).
 
     Raises:
-        ValueError: the refined model does not converge at x.
+        DiscretisationFailure: the refined model does not converge at x.
     """
     f_coarse, f_fine = coarse(x), fine(x)
     if f_fine is None:
-        raise ValueError(BETTER_MESH_FAILS)
+        raise DiscretisationFailure(BETTER_MESH_FAILS)
     shift = np.where(data.masks[..., None], f_fine - f_coarse, 0.0)
     m = data.masks
     measured_rms = float(np.sqrt(np.mean(data.fields[m] ** 2)))
@@ -452,15 +477,15 @@ def mesh_error_drift(coarse: ForwardModel, fine: ForwardModel, x: np.ndarray, ma
     (docs/criticism.md §4, §23).
 
     Raises:
-        ValueError: the better mesh does not converge at x.
+        DiscretisationFailure: either mesh does not converge at x.
     """
     names = list(coarse.names)
     (fine_result,) = fine.evaluate_with_jacobian([x], names)
     if fine_result is None:
-        raise ValueError(BETTER_MESH_FAILS)
+        raise DiscretisationFailure(BETTER_MESH_FAILS)
     (coarse_result,) = coarse.evaluate_with_jacobian([x], names)
     if coarse_result is None:
-        raise ValueError("the check's mesh does not converge at its own calibrated parameters")
+        raise DiscretisationFailure("the check's mesh does not converge at its own calibrated parameters")
     drift = np.where(masks[..., None, None], fine_result[1] - coarse_result[1], 0.0)
     switch = coarse.index(prestressing_parameters(names))
     if not np.any(x[switch]):

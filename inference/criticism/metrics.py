@@ -36,7 +36,7 @@ class ResidualMetrics:
 
     rmse: float
     rmse_by_component: dict[str, float]  # "xx", "yy", "xy"
-    noise_rms: float  # RMS of the stated noise sd
+    noise_rms: float  # RMS of the noise sd used (the stated one, or the noise statement's estimate)
     chi2: float
     dof: int
     chi2_per_dof: float
@@ -109,10 +109,14 @@ class Hotspot:
 
 def residual_hotspot(cal: Calibration, data: Data, k: int = HOTSPOT_POINTS) -> Hotspot:
     """The measured point whose ``k`` nearest measured points hold the largest RMS standardised
-    residual (k nearest rather than a fixed radius: the disc adapts to the point density)."""
+    residual (k nearest rather than a fixed radius: the disc adapts to the point density).
+    Observations that share a point are averaged there first, so that the k points are k
+    places, not copies of fewer."""
     squares = data.point_mean_square(cal.model_fields)
-    xy = np.concatenate([data.xy[o, m] for o, m in enumerate(data.masks)])
-    sq = np.concatenate([squares[o, m] for o, m in enumerate(data.masks)])
+    pooled = np.concatenate([data.xy[o, m] for o, m in enumerate(data.masks)])
+    xy, where = np.unique(pooled, axis=0, return_inverse=True)
+    sq = np.bincount(where.ravel(), np.concatenate([squares[o, m] for o, m in enumerate(data.masks)]))
+    sq /= np.bincount(where.ravel())
     k = min(k, len(xy))
     distance, nearest = cKDTree(xy).query(xy, k)
     distance, nearest = distance.reshape(len(xy), k), nearest.reshape(len(xy), k)

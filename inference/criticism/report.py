@@ -29,7 +29,7 @@ def discretisation_lines(result: CheckResult) -> list[str]:
         "",
         disc.summary(),
         "",
-        "| | RMS, share of the field | RMS [noise sd] |",
+        "| | RMS, share of the field | RMS [stated noise sd] |",
         "|---|---|---|",
         f"| check mesh ({disc.mesh}) | {disc.relative:.1%} | {disc.sigma:.2f} |",
         f"| after the fitted correction (carried in the covariance) | {disc.remaining_relative:.1%} "
@@ -292,7 +292,9 @@ def cost_lines(result: CheckResult) -> list[str]:
         "",
         "## Cost",
         "",
-        f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs), diagnose {t.diagnose_s:.0f} s "
+        f"setup {t.setup_s:.0f} s ({t.setup_fe_runs} FE runs for the starting point), "
+        f"compare {t.compare_s:.0f} s ({t.compare_fe_runs} FE runs; with the refined mesh's "
+        f"{t.refined_fe_runs} runs in {t.refined_s:.0f} s), diagnose {t.diagnose_s:.0f} s "
         f"({t.diagnose_fe_runs} runs), add {t.add_s:.0f} s ({t.add_fe_runs} new runs; "
         f"{t.add_reused_from_diagnose_fe_runs} runs of fits made while diagnosing reused), "
         f"next round {t.next_round_s:.0f} s ({t.next_round_fe_runs} runs); "

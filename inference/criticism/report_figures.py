@@ -102,7 +102,7 @@ def error_falls_plot(result: CheckResult, path: Path) -> Path:
     fig, axes = plt.subplots(1, 2, figsize=(4 + 1.6 * len(labels), 3.8))
     x = np.arange(len(labels))
     axes[0].bar(x, rmse, color="C0")
-    axes[0].axhline(result.versions[0].metrics.noise_rms, color="k", ls="--", label="stated noise sd (RMS)")
+    axes[0].axhline(result.versions[0].metrics.noise_rms, color="k", ls="--", label="noise sd used (RMS)")
     axes[0].set_ylabel("residual RMSE [log strain]")
     axes[0].legend(fontsize=8)
     axes[1].bar(x, chi, color="C1")

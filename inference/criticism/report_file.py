@@ -65,6 +65,7 @@ def report_dict(result: CheckResult) -> dict:
             "ratio": result.discretisation.ratio,
             "basis": result.discretisation.basis,
             "remaining_sigma": result.discretisation.remaining_sigma,
+            "noise_factor": result.discretisation.noise_factor,
             "resolved": result.discretisation.resolved,
             "suggested_h_edge_mm": result.discretisation.suggested_h_edge(),
             "amplitude": result.discretisation.amplitude,
@@ -172,11 +173,12 @@ class ReportDiscretisation:
     Attributes:
         mesh: the check's mesh.
         relative: RMS of its error / RMS of the measured field.
-        sigma: RMS of its error [noise sd].
+        sigma: RMS of its error [stated noise sd].
         order: the order of convergence the estimate assumes.
-        remaining_sigma: RMS of the corrected model's error, carried next to the noise [noise sd].
-        resolved: the corrected model's error is below half the noise.
-        suggested_h_edge_mm: the membrane-edge cell size [mm] whose error would be half the noise.
+        remaining_sigma: RMS of the corrected model's error, carried next to the noise [stated noise sd].
+        resolved: the corrected model's error is below half the noise used (the stated sd times
+            the noise statement's factor).
+        suggested_h_edge_mm: the membrane-edge cell size [mm] whose error would be half the noise used.
         amplitude, amplitude_sd: the fitted multiple of the two meshes' shift and its Laplace sd.
     """
 
