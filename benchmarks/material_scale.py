@@ -1,6 +1,7 @@
 """Is one material's emulator error the average one? Whitened errors at the truth, per material.
 
     python benchmarks/material_scale.py --emulator EMU --data FRESH.h5 [--results FILE]
+    python benchmarks/material_scale.py --emulator EMU --data FRESH.h5 --fresh-shift TRAINING.h5 [--oracle DIR]
 
 For every test material of FRESH.h5, the last frame of one design (material i: design i mod n,
 as ``skinid study coverage --starts 1``) and of all designs, projected on the emulator's PCs and
@@ -22,6 +23,12 @@ nu = 2a + n - 5 and scale^2 = sd_k^2 b' / a' (lambda's posterior InverseGamma(a 
 b + |e - J delta|^2 / 2)). Recorded per parameter: the coverage of those linearised 50 % / 95 %
 intervals (flat prior, box bounds ignored) under both, mean z^2, and the share of |e|^2 the
 parameters absorb against the p / n an isotropic error would give.
+
+``--fresh-shift``: the cross-validation's shift covariance C (recomputed from TRAINING.h5, the
+emulator's dataset) against the fresh materials' own shifts under the emulator's GPs, same
+estimator, and what the shifts leave of the error against the GP variance
+(benchmarks/results/material_scale_fresh_shift.json); ``--oracle`` also writes a copy of the
+emulator with the fresh materials' C (a diagnostic: fitted on the cases it is scored on).
 
 ``shift``: the same cases under the likelihood of ``--emulator-error shift`` (the emulator's
 cross-validated parameter shift, ``meta.json`` ``held_out_excess.parameter_shift``, carried as
@@ -165,15 +172,11 @@ def quantiles(q: np.ndarray, n: int, shape: float, rate: float) -> dict:
 def rows_and_weights(emulator, data, materials) -> tuple:
     """Every converged (design, frame) row of ``materials`` of ``data``: rows, unit-box inputs (n, 7),
     PC weights (n, G) and load scale s (n,) as the emulator's fit makes them."""
-    from skinfem.io import COMPONENTS
-    from surrogate.emulator import TrainingRows, unit_span
+    from surrogate.emulator import TrainingRows
 
     rows = TrainingRows.from_dataset(data, materials)
-    weights = np.concatenate(
-        [emulator.pcas[c].transform(rows.fields[..., COMPONENTS.index(c)]) for c in emulator.components], 1
-    )
-    x = (rows.inputs - emulator.lower) / unit_span(emulator.lower, emulator.upper)
-    return rows, x, weights, emulator.held_out_excess.load_scale(rows.inputs[:, 5:])
+    weights = emulator.weights_of_fields(emulator.dataset_fields(rows.fields))
+    return rows, emulator.scale(rows.inputs), weights, emulator.held_out_excess.load_scale(rows.inputs[:, 5:])
 
 
 def shift_and_residual(error, variance, jacobian, materials, scale, tau2) -> tuple[np.ndarray, np.ndarray]:
@@ -233,11 +236,10 @@ def fresh_against_cross_validation(emulator, data, training) -> dict:
 
 
 def write_oracle(emulator: Path, out: Path, covariance: list) -> None:
-    """A copy of the emulator folder whose parameter shift's C is ``covariance`` (5 x 5); refuses
-    an existing ``out``."""
+    """A copy of the emulator folder whose parameter shift's C is ``covariance`` (5 x 5)."""
     import shutil
 
-    shutil.copytree(emulator, out)  # FileExistsError for an existing folder
+    shutil.copytree(emulator, out)
     meta = json.loads((out / "meta.json").read_text())
     meta["held_out_excess"]["parameter_shift"]["covariance"] = covariance
     (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -252,7 +254,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--emulator", type=Path, required=True)
     parser.add_argument("--data", type=Path, required=True, help="dataset of fresh test materials")
-    parser.add_argument("--results", type=Path, default=HERE / "results" / "material_scale.json")
+    parser.add_argument(
+        "--results",
+        type=Path,
+        help="default: results/material_scale.json, with --fresh-shift material_scale_fresh_shift.json",
+    )
     parser.add_argument(
         "--fresh-shift",
         type=Path,
@@ -266,6 +272,10 @@ def main() -> None:
         help="with --fresh-shift: also write a copy of the emulator whose C is the fresh materials' own (a diagnostic)",
     )
     args = parser.parse_args()
+    if args.oracle is not None and (args.fresh_shift is None or args.oracle.exists()):
+        parser.error(f"--oracle needs --fresh-shift and a folder that does not exist yet, got {args.oracle}")
+    name = "material_scale.json" if args.fresh_shift is None else "material_scale_fresh_shift.json"
+    args.results = args.results or HERE / "results" / name
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     if args.fresh_shift is not None:
         result = {"emulator": str(args.emulator), "data": str(args.data), "training": str(args.fresh_shift)}
