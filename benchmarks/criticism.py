@@ -2,7 +2,7 @@
 
     mpirun -n 2 python benchmarks/criticism.py [--config small] [--cases none pre_stretch ...]
                                                [--seeds 5] [--out out/criticism_bench]
-                                               [--data q2 | q2-edge | q2-fine | q2-limit]
+                                               [--data q2 | q2-edge | q2-fine | q2-limit | q2-limit-m8]
                                                [--refine uniform | edge | quadratic | converged]
                                                [--start spread | centre] [--confirm 1]
                                                [--results FILE] [--keep-recorded]
@@ -12,7 +12,7 @@ Data the checked model did not make: quadratic elements (Q2) on a mesh graded di
 cells at the membrane edge, finer than the quadratic check mesh, preset ``check``; ``--data
 q2-fine``: 0.25 mm edge cells and four muscle layers, finer than the ``converged`` reference; ``--data
 q2-limit``: the Richardson limit of that mesh and the same with 0.5 mm edge cells, as converged as a
-real measurement), one material
+real measurement; ``--data q2-limit-m8``: the same limit with eight muscle layers), one material
 (mu 1.2e-3 MPa, k1 0.017 MPa, k2 11, kappa 0.285, theta 30 deg), two membranes ((0.05, 0.05),
 (0.05, -0.05)), measured like DIC (1 mm strain window) at a jittered 1 mm point cloud with three
 holes over +-18 mm, plus correlated noise (sd 1e-3, 2 mm, 30 % uncorrelated), one noise draw per
@@ -105,8 +105,13 @@ DATA_MESHES = {  # changes to the small preset
     "q2-edge": {"h_far": 4.0, "muscle_layers": 3, "skin_layers": 2, "h_edge": 0.5},
     "q2-fine": {"h_far": 4.0, "muscle_layers": 4, "skin_layers": 2, "h_edge": 0.25},
     "q2-fine-coarser": {"h_far": 4.0, "muscle_layers": 4, "skin_layers": 2, "h_edge": 0.5},
+    "q2-fine-m8": {"h_far": 4.0, "muscle_layers": 8, "skin_layers": 2, "h_edge": 0.25},
+    "q2-fine-coarser-m8": {"h_far": 4.0, "muscle_layers": 8, "skin_layers": 2, "h_edge": 0.5},
 }
-LIMITS = {"q2-limit": ("q2-fine-coarser", "q2-fine")}  # (coarser, finer): edge cells halved, all else equal
+LIMITS = {  # (coarser, finer): edge cells halved, all else equal
+    "q2-limit": ("q2-fine-coarser", "q2-fine"),
+    "q2-limit-m8": ("q2-fine-coarser-m8", "q2-fine-m8"),
+}
 
 
 def extrapolated(coarser: np.ndarray, finer: np.ndarray) -> np.ndarray:
