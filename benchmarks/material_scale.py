@@ -180,19 +180,21 @@ def rows_and_weights(emulator, data, materials) -> tuple:
 
 
 def shift_and_residual(error, variance, jacobian, materials, scale, tau2) -> tuple[np.ndarray, np.ndarray]:
-    """C (5, 5) of the materials' parameter shifts, as the emulator's fit estimates it from its
-    cross-validation (:func:`surrogate.error_model.fit_parameter_shift`) but from any errors, and
-    what the shifts leave of the errors (n, G)."""
-    from surrogate.error_model import material_shifts, shift_covariance
+    """The second moment (5, 5) of the materials' parameter shifts, as the emulator's fit
+    estimates it from its cross-validation (:func:`surrogate.error_model.shift_second_moment`,
+    before the prediction's factor) but from any errors, and what the shifts leave of the errors
+    (n, G)."""
+    from surrogate.error_model import material_shifts, shift_second_moment
 
     shifts, fit_errors, _, residual = material_shifts(error, variance, jacobian, materials, scale, tau2)
-    return shift_covariance(shifts, fit_errors), residual
+    return shift_second_moment(shifts, fit_errors), residual
 
 
 def fresh_against_cross_validation(emulator, data, training) -> dict:
     """Is the shift covariance C the cross-validation fits (left-out training materials, GPs
     refitted on the other folds) the size of fresh materials' shifts under the emulator's own
-    GPs? Same estimator on both; also each PC weight's mean square error, GP variance and what the
+    GPs? The shifts' second moment on both (same estimator), and the emulator's C, the
+    cross-validation's predicted for a new material; also each PC weight's mean square error, GP variance and what the
     shifts leave of the error at the last frame on both, and over all rows what they leave as a
     share of the GP variance."""
     from skinfem.config import PARAM_NAMES
@@ -215,7 +217,7 @@ def fresh_against_cross_validation(emulator, data, training) -> dict:
         "parameters": list(PARAM_NAMES),
         "shift_sd_unit_box": {
             "emulator": np.sqrt(np.diag(emulator.held_out_excess.parameter_shift.covariance)).round(4).tolist(),
-            "cross_validation_recomputed": np.sqrt(np.diag(cv_c)).round(4).tolist(),
+            "cross_validation_second_moment": np.sqrt(np.diag(cv_c)).round(4).tolist(),
             "fresh": np.sqrt(np.diag(fresh_c)).round(4).tolist(),
         },
         "fresh_shift_covariance": fresh_c.tolist(),

@@ -24,7 +24,10 @@ error is then mostly a shift of the material's parameters shared by every weight
 observation (:class:`surrogate.error_model.ParameterShift`), carried as lambda J C J^T over all
 weights together (J the emulator mean's Jacobian in the unit box of the parameters, evaluated
 at the point, or at the mode with the GP variance; C the shift covariance), with the held-out
-excess tau_g^2 replaced by what the shift leaves. S_g is the observation noise, either
+excess tau_g^2 replaced by what the shift leaves, and C_g by rho_g C_g: the GP variance measures
+the whole of a fresh material's error, shift included, and carried in full next to J C J^T it
+would count the shift twice; rho_g is the share of it the shifts of held-out materials leave
+(:func:`surrogate.error_model.shift_residual_model`). S_g is the observation noise, either
 - ``noise="halfcauchy"``: one unknown sigma_c per strain component shared by all its PC weights
   (and observations), sigma_c ~ HalfCauchy(noise_scale), in PC-weight units; or
 - ``noise="known"``: the measurement's stated per-cell standard deviation carried through the
@@ -195,7 +198,7 @@ class ErrorBudget:
     (mean over weights and observations of term / total; the shares sum to 1)."""
 
     noise: float
-    gp: float  # the GPs' own predictive variance
+    gp: float  # the GPs' own predictive variance (its share rho_g with the parameter shift)
     held_out_excess: float  # the cross-validated excess (surrogate.error_model)
     truncation: float  # what the retained PCs cannot represent, through the masked projection
     parameter_shift: float = 0.0  # the error shared as a shift of the parameters (emulator_shift)
@@ -279,9 +282,12 @@ class SkinPosterior:
         if emulator_shift and self.shift is None:
             raise ValueError(
                 "the parameter shift needs the emulator's error model (emulator_error on) and an emulator "
-                "that fitted it: refit it with 'skinid surrogate fit'"
+                "that fitted it (on >= 7 training materials): refit it with 'skinid surrogate fit'"
             )
         self.shift_root = None if self.shift is None else torch.as_tensor(psd_root(np.array(self.shift.covariance)))
+        self.gp_share = torch.ones(self.weights.shape[1], dtype=torch.float64)  # rho_g (module doc)
+        if self.shift is not None:
+            self.gp_share = torch.as_tensor(self.shift.gp_share, dtype=torch.float64)
         self.excess_cov, self.truncation_var = self._emulator_error_terms()
         self.scale_prior = excess.material_scale if emulator_error and emulator_scale and excess else None
         if emulator_scale and self.scale_prior is None:
@@ -381,8 +387,10 @@ class SkinPosterior:
         return (sigma[self.component_of_weight] ** 2).expand(self.weights.shape)
 
     def model_covariance(self, gp_cov: torch.Tensor, scale: torch.Tensor | float = 1.0) -> torch.Tensor:
-        """Emulator covariance (G, n_obs, n_obs): lambda (GP + held-out excess + truncation)."""
-        return scale * (gp_cov + self.excess_cov + torch.diag_embed(self.truncation_var.T))
+        """Emulator covariance (G, n_obs, n_obs): lambda (rho GP + held-out excess + truncation),
+        rho_g = 1 without the parameter shift."""
+        gp = self.gp_share[:, None, None] * gp_cov
+        return scale * (gp + self.excess_cov + torch.diag_embed(self.truncation_var.T))
 
     def moments(
         self, params: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor | float = 1.0
@@ -558,7 +566,7 @@ class SkinPosterior:
         """Which term dominates the weights' variance at constrained ``values`` (dim,)."""
         params, sigma, scale = self.latents(torch.as_tensor(values, dtype=torch.float64))
         with torch.no_grad():
-            gp = torch.diagonal(self.gp_moments(params)[1], dim1=-2, dim2=-1).T
+            gp = self.gp_share * torch.diagonal(self.gp_moments(params)[1], dim1=-2, dim2=-1).T
             excess = torch.diagonal(self.excess_cov, dim1=-2, dim2=-1).T
             factor = self.shift_factor(params)
             shift = torch.zeros_like(gp) if factor is None else torch.sum(factor.detach() ** 2, -1).T

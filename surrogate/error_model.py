@@ -37,8 +37,10 @@ the five material inputs (on the ``small`` emulator 76-96 % of a left-out materi
 so more observations do not average it out, and a residual cannot tell it from the parameters
 (it moves the estimate instead of widening it). :func:`fit_parameter_shift` measures the
 shifts delta_m of the left-out materials (their covariance C) and the held-out excess of what
-they leave (:class:`ParameterShift`); a likelihood that carries J C J^T next to the rest
-(``inference.model``, ``emulator_shift``) widens the intervals by C in parameter space.
+they leave (:class:`ParameterShift`): a share rho_g of the GP variance and an excess; a
+likelihood that carries J C J^T next to rho_g times the GP covariance and the rest
+(``inference.model``, ``emulator_shift``) widens the intervals by C in parameter space without
+counting the shift twice (once in C, once in the GP variance that measured it).
 
 Units: weights are in the PCA's standardised units (per-cell scaled strain), as the GPs; the
 shift in the emulator's unit box of the inputs.
@@ -58,6 +60,7 @@ from surrogate.gp import GPBank
 from surrogate.pca import StrainPCA
 
 FOLDS = 5
+SHIFT_MATERIALS = 7  # a new material's shift covariance from fewer is unbounded (shift_covariance)
 
 
 @dataclass(frozen=True)
@@ -69,25 +72,32 @@ class ParameterShift:
         residual_variance: (G,) held-out excess of what the shift leaves, at s = 1 (as
             :attr:`HeldOutExcess.variance`) [PC-weight units^2].
         absorbed_share: mean share of a left-out material's whitened |e|^2 its shift explains [-].
+        gp_share: (G,) rho_g in (0, 1]: what the shift leaves is N(0, rho_g v + tau_g^2 s^2), v the
+            GP's predictive variance; most of v is the shift itself, which J C J^T carries
+            (:func:`shift_residual_model`) [-]. 1 for emulators fitted before it was measured.
     """
 
     covariance: tuple[tuple[float, ...], ...]
     residual_variance: tuple[float, ...]
     absorbed_share: float
+    gp_share: tuple[float, ...]
 
     def to_json(self) -> dict:
         return {
             "covariance": [list(row) for row in self.covariance],
             "residual_variance": list(self.residual_variance),
             "absorbed_share": self.absorbed_share,
+            "gp_share": list(self.gp_share),
         }
 
     @classmethod
     def from_json(cls, entry: dict) -> ParameterShift:
+        residual = tuple(float(v) for v in entry["residual_variance"])
         return cls(
             tuple(tuple(float(c) for c in row) for row in entry["covariance"]),
-            tuple(float(v) for v in entry["residual_variance"]),
+            residual,
             float(entry["absorbed_share"]),
+            tuple(float(v) for v in entry.get("gp_share", [1.0] * len(residual))),
         )
 
 
@@ -104,7 +114,7 @@ class HeldOutExcess:
         material_scale: (shape a, rate b) of the material scale lambda ~ InverseGamma(a, b)
             (:func:`fit_material_scale`), or None (lambda = 1: emulators fitted before it).
         parameter_shift: the error as a parameter shift (:func:`fit_parameter_shift`), or None
-            (emulators fitted before it).
+            (emulators fitted before it, or on fewer than :data:`SHIFT_MATERIALS` materials).
     """
 
     variance: tuple[float, ...]
@@ -200,10 +210,24 @@ def least_squares_shift(error: np.ndarray, jacobian: np.ndarray) -> tuple[np.nda
 
 
 def shift_covariance(shifts: np.ndarray, fit_errors: np.ndarray) -> np.ndarray:
-    """C (5, 5): the mean of delta_m delta_m^T over the materials' fitted shifts (m, 5) less the
-    mean covariance of their fit errors (m, 5, 5) (a fitted shift is the true one plus its fit
-    error), projected onto the positive semi-definite matrices. Without the correction a
-    direction the errors barely inform (a small column of J) gets the fit's noise as its C."""
+    """C (5, 5): the covariance of a new material's shift predicted from the M materials' fitted
+    shifts (M, 5) and their fit errors' covariances (M, 5, 5).
+
+    Their second moment less the fit errors (:func:`shift_second_moment`) times M / (M - 6): a
+    second moment S / M of M draws, used for a new draw, has
+    E[delta^T (S / M)^-1 delta] = 5 M / (M - 6) (Hotelling's T^2), not 5 -- twice the variance
+    for the 12 training materials of ``small`` (needs M >= :data:`SHIFT_MATERIALS`)."""
+    m = len(shifts)
+    if m < SHIFT_MATERIALS:
+        raise ValueError(f"a shift covariance predicted from {m} materials needs >= {SHIFT_MATERIALS}")
+    return shift_second_moment(shifts, fit_errors) * m / (m - 6)
+
+
+def shift_second_moment(shifts: np.ndarray, fit_errors: np.ndarray) -> np.ndarray:
+    """(5, 5) mean of delta_m delta_m^T over the fitted shifts (M, 5) less the mean of their fit
+    errors' covariances (M, 5, 5) (a fitted shift is the true one plus its fit error; without the
+    correction a direction the errors barely inform, a small column of J, gets the fit's noise
+    as its C), projected onto the positive semi-definite matrices."""
     raw = shifts.T @ shifts / len(shifts) - fit_errors.mean(0)
     values, vectors = np.linalg.eigh((raw + raw.T) / 2)
     return (vectors * np.clip(values, 0, None)) @ vectors.T
@@ -238,16 +262,39 @@ def material_shifts(
     return np.array(shifts), np.array(fit_errors), np.array(absorbed), residual
 
 
+def shift_residual_model(residual: np.ndarray, variance: np.ndarray, scale: np.ndarray) -> tuple[float, float]:
+    """Maximum-likelihood (rho, tau^2) of residual ~ N(0, rho variance + tau^2 scale^2), all (n,),
+    rho in [1e-3, 1], tau^2 >= 0: what a material's shift leaves of its error, against the GP
+    variance and the load-scaled excess.
+
+    The GP's predictive variance v measures the whole of the error of a material it was not
+    conditioned on, most of which is the material's parameter shift; the likelihood carries that
+    shift as J C J^T, so it carries of v only the share rho that the shift leaves (on the ``small``
+    emulator 6-27 % in cross-validation, 6-16 % on fresh materials,
+    ``benchmarks/material_scale.py``). rho is capped at 1: the shift never adds GP variance (an
+    error larger than v goes to tau^2). rho is found on a bounded log scale with tau^2 profiled
+    out (:func:`excess_variance` at each rho)."""
+
+    def profile(log_rho: float) -> tuple[float, float]:
+        v = np.exp(log_rho) * variance
+        tau2 = excess_variance(residual, v, scale)
+        total = v + tau2 * scale**2
+        return float(np.sum(residual**2 / total + np.log(total))), tau2
+
+    best = minimize_scalar(lambda r: profile(r)[0], bounds=(np.log(1e-3), 0.0), method="bounded")
+    return float(np.exp(best.x)), profile(best.x)[1]
+
+
 def fit_parameter_shift(
     error: np.ndarray, variance: np.ndarray, jacobian: np.ndarray, materials: np.ndarray, scale: np.ndarray, tau2
 ) -> ParameterShift:
     """The materials' shifts (:func:`material_shifts`, arguments as there); C from the shifts
-    less their fit errors (:func:`shift_covariance`); the excess of what they leave refitted as
-    :func:`excess_variance`."""
+    less their fit errors (:func:`shift_covariance`); the share of the GP variance and the excess
+    of what they leave (:func:`shift_residual_model`, per weight)."""
     shifts, fit_errors, absorbed, residual = material_shifts(error, variance, jacobian, materials, scale, tau2)
-    tau2_left = [excess_variance(residual[:, g], variance[:, g], scale) for g in range(error.shape[1])]
+    rho, tau2_left = zip(*(shift_residual_model(residual[:, g], variance[:, g], scale) for g in range(error.shape[1])))
     covariance = shift_covariance(shifts, fit_errors)
-    return ParameterShift(tuple(map(tuple, covariance.tolist())), tuple(tau2_left), float(np.mean(absorbed)))
+    return ParameterShift(tuple(map(tuple, covariance.tolist())), tau2_left, float(np.mean(absorbed)), rho)
 
 
 def material_quadratic_forms(
@@ -366,7 +413,9 @@ def cross_validated_excess(
         len(error),
         float(load.max()),
         fit_material_scale(quadratic, counts),
-        fit_parameter_shift(error, variance, jacobian, materials, scale, tau2),
+        fit_parameter_shift(error, variance, jacobian, materials, scale, tau2)
+        if len(np.unique(materials)) >= SHIFT_MATERIALS
+        else None,
     )
 
 

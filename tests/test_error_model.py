@@ -357,6 +357,51 @@ def test_parameter_shift_recovers_a_known_shift_covariance_and_the_residual_exce
     assert shift == type(shift).from_json(shift.to_json())
 
 
+def test_shift_residual_model_recovers_the_gp_share_and_the_excess():
+    """Residuals of variance rho v + tau^2 s^2 with rho = 0.15, tau^2 = 2e-3 (20,000 draws; v and s
+    independent, so the two are told apart): both within 10 % (sampling sd ~2-3 %). A residual
+    of 2.5 times the GP variance keeps rho at its cap 1 and gives more than the excess to tau^2."""
+    from surrogate.error_model import shift_residual_model
+
+    rng = np.random.default_rng(3)
+    n = 20_000
+    variance, scale = rng.uniform(0.5e-2, 2e-2, n), rng.uniform(0.1, 1.0, n)
+    residual = rng.normal(size=n) * np.sqrt(0.15 * variance + 2e-3 * scale**2)
+    rho, tau2 = shift_residual_model(residual, variance, scale)
+    assert rho == pytest.approx(0.15, rel=0.1) and tau2 == pytest.approx(2e-3, rel=0.1)
+    larger = rng.normal(size=n) * np.sqrt(2.5 * variance + 5e-3 * scale**2)
+    rho, tau2 = shift_residual_model(larger, variance, scale)
+    assert rho == pytest.approx(1.0, abs=1e-3) and tau2 > 5e-3
+
+
+def test_shift_covariance_predicts_a_new_materials_shift_from_twelve():
+    """Shifts of 12 materials drawn from a known C, 4,000 times: a new material's Mahalanobis
+    square under the predicted C averages 5, as a calibrated covariance's must (Monte Carlo sd
+    ~0.1), where the 12 shifts' own second moment gives twice that (Hotelling: 5 * 12 / 6). Fewer
+    than 7 materials are refused."""
+    from surrogate.error_model import shift_covariance, shift_second_moment
+
+    rng = np.random.default_rng(8)
+    root = np.diag([0.02, 0.2, 0.6, 0.1, 0.1]) + 0.05 * rng.normal(size=(5, 5))
+    no_fit_error = np.zeros((12, 5, 5))
+    predicted, plain = [], []
+    for _ in range(4000):
+        shifts, new = rng.normal(size=(12, 5)) @ root.T, root @ rng.normal(size=5)
+        predicted.append(new @ np.linalg.solve(shift_covariance(shifts, no_fit_error), new))
+        plain.append(new @ np.linalg.solve(shift_second_moment(shifts, no_fit_error), new))
+    assert np.mean(predicted) == pytest.approx(5.0, abs=0.4)
+    assert np.mean(plain) == pytest.approx(10.0, abs=0.8)
+    with pytest.raises(ValueError, match=">= 7"):
+        shift_covariance(shifts[:6], no_fit_error[:6])
+
+
+def test_an_emulator_fitted_before_the_gp_share_carries_the_gp_variance_in_full():
+    from surrogate.error_model import ParameterShift
+
+    entry = {"covariance": np.eye(5).tolist(), "residual_variance": [1e-3, 2e-3], "absorbed_share": 0.8}
+    assert ParameterShift.from_json(entry).gp_share == (1.0, 1.0)
+
+
 def test_shift_covariance_removes_the_fit_error_of_a_weakly_informed_direction():
     """One column of J 50x smaller than the others: each material's fitted shift along it is
     mostly its fit's noise (fit-error variance ~0.16 against a true 0.1). mean delta delta^T

@@ -71,6 +71,31 @@ def test_potential_equals_pyro_models_potential(emulator, data, gp_variance, sca
         assert float(post.potential({"u": u})) == pytest.approx(expected, rel=1e-9, abs=1e-8)  # two float64 routes
 
 
+def test_parameter_shift_carries_its_share_of_the_gp_covariance(emulator, data):
+    """With the shift, the weights' covariance holds rho_g times the GP's joint covariance: against
+    the same emulator with rho_g = 1 the covariances differ by exactly (1 - rho_g) C_g, and the
+    error budget's GP share falls with it."""
+    import copy
+    import dataclasses
+
+    excess = emulator.held_out_excess
+    rho = np.array(excess.parameter_shift.gp_share)
+    assert np.all((rho > 0) & (rho < 1))  # the cross-validated shifts leave part of the GP variance
+    full = copy.copy(emulator)
+    whole_gp = dataclasses.replace(excess.parameter_shift, gp_share=(1.0,) * len(rho))
+    full.provenance = dataclasses.replace(
+        emulator.provenance, held_out_excess=dataclasses.replace(excess, parameter_shift=whole_gp)
+    )
+    obs = ObservedWeights.project(emulator, from_dataset(data, 0, designs=[0, 2], frames=[-2, -1]))
+    shared, whole = (SkinPosterior(e, obs, emulator_shift=True) for e in (emulator, full))
+    params, sigma = torch.as_tensor(data.params[1]), torch.full((shared.n_sigma,), 1e-3, dtype=torch.float64)
+    gp_cov = emulator.predict_joint(shared.inputs(params))[1]
+    difference = whole.moments(params, sigma)[1] - shared.moments(params, sigma)[1]
+    torch.testing.assert_close(difference, torch.as_tensor(1 - rho)[:, None, None] * gp_cov, rtol=1e-9, atol=1e-14)
+    values = np.concatenate([data.params[1], sigma.numpy()])
+    assert shared.error_budget(values).gp < whole.error_budget(values).gp
+
+
 def test_density_of_a_non_finite_point_is_non_finite_not_an_error(emulator, data):
     """L-BFGS line searches can step to overflow; the mode search then discards that start."""
     obs = from_dataset(data, 0, designs=[0], frames=[-1])
