@@ -269,11 +269,11 @@ def shift_residual_model(residual: np.ndarray, variance: np.ndarray, scale: np.n
 
     The GP's predictive variance v measures the whole of the error of a material it was not
     conditioned on, most of which is the material's parameter shift; the likelihood carries that
-    shift as J C J^T, so it carries of v only the share rho that the shift leaves (on the ``small``
-    emulator 6-27 % in cross-validation, 6-16 % on fresh materials,
-    ``benchmarks/material_scale.py``). rho is capped at 1: the shift never adds GP variance (an
-    error larger than v goes to tau^2). rho is found on a bounded log scale with tau^2 profiled
-    out (:func:`excess_variance` at each rho)."""
+    shift as J C J^T, so it carries of v only the share rho that the shift leaves. (On the
+    ``small`` emulator what the shifts leave has 6-27 % of v's mean square, and the fit puts it
+    almost all in tau^2, growing with the load: rho 0.001-0.016, docs/inference.md.) rho is
+    capped at 1: the shift never adds GP variance (an error larger than v goes to tau^2). rho is
+    found on a bounded log scale with tau^2 profiled out (:func:`excess_variance` at each rho)."""
 
     def profile(log_rho: float) -> tuple[float, float]:
         v = np.exp(log_rho) * variance
