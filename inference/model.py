@@ -66,7 +66,7 @@ from inference.observations import Observation
 from skinfem.config import PARAM_NAMES
 from skinfem.io import COMPONENTS
 from surrogate.emulator import Emulator
-from surrogate.error_model import truncation_variance
+from surrogate.error_model import SHIFT_MATERIALS, truncation_variance
 
 
 @dataclass
@@ -282,12 +282,11 @@ class SkinPosterior:
         if emulator_shift and self.shift is None:
             raise ValueError(
                 "the parameter shift needs the emulator's error model (emulator_error on) and an emulator "
-                "that fitted it (on >= 7 training materials): refit it with 'skinid surrogate fit'"
+                f"that fitted it (on >= {SHIFT_MATERIALS} training materials): refit it with 'skinid surrogate fit'"
             )
         self.shift_root = None if self.shift is None else torch.as_tensor(psd_root(np.array(self.shift.covariance)))
-        self.gp_share = torch.ones(self.weights.shape[1], dtype=torch.float64)  # rho_g (module doc)
-        if self.shift is not None:
-            self.gp_share = torch.as_tensor(self.shift.gp_share, dtype=torch.float64)
+        rho = np.ones(self.weights.shape[1]) if self.shift is None else self.shift.gp_share
+        self.gp_share = torch.as_tensor(rho, dtype=torch.float64)  # rho_g (module doc)
         self.excess_cov, self.truncation_var = self._emulator_error_terms()
         self.scale_prior = excess.material_scale if emulator_error and emulator_scale and excess else None
         if emulator_scale and self.scale_prior is None:
