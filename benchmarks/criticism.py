@@ -151,38 +151,59 @@ def data_config(name: str):
 
 def data_fields(config, case: str, points, mesh_dir, comm, path: Path) -> np.ndarray:
     """Noise-free data (n_designs, n_points, 3) of every design (one design per rank at a time),
-    on every rank; kept in ``path`` (.npy) so that a rerun does not recompute them."""
-    from inference.synthetic import measured_fields
+    on every rank; kept in ``path`` (.npy) so that a rerun does not recompute them. Each design's
+    field is kept as it finishes (``<path stem>_design<j>.npy``): a killed run loses only the
+    designs in progress."""
     from skinfem.parallel import collective
-    from skinfem.params import SkinParams
 
     if path.exists():
         return np.load(path)
     mine = collective(
         comm,
-        lambda: dict(
-            zip(
-                range(comm.rank, len(DESIGNS), comm.size),
-                measured_fields(
-                    config,
-                    SkinParams(*TRUTH),
-                    DESIGNS[comm.rank :: comm.size],
-                    points,
-                    hidden_effects()[case],
-                    mesh_dir,
-                    increments=2,
-                    defects=hidden_defects(case),
-                ),
-            )
-        ),
+        lambda: {
+            j: design_field(config, case, DESIGNS[j], points, mesh_dir, design_path(path, j))
+            for j in range(comm.rank, len(DESIGNS), comm.size)
+        },
     )
     merged = {j: f for part in comm.allgather(mine) for j, f in part.items()}
     fields = np.stack([merged[j] for j in range(len(DESIGNS))])
     if comm.rank == 0:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.save(path.with_suffix(".tmp.npy"), fields)
-        path.with_suffix(".tmp.npy").replace(path)
+        save_npy(path, fields)
+        for j in range(len(DESIGNS)):
+            design_path(path, j).unlink()
     return fields
+
+
+def design_path(path: Path, j: int) -> Path:
+    return path.with_name(f"{path.stem}_design{j}.npy")
+
+
+def design_field(config, case: str, design, points, mesh_dir, path: Path) -> np.ndarray:
+    """Noise-free data (n_points, 3) of one design, read from ``path`` if a run before made it."""
+    from inference.synthetic import measured_fields
+    from skinfem.params import SkinParams
+
+    if path.exists():
+        return np.load(path)
+    (field,) = measured_fields(
+        config,
+        SkinParams(*TRUTH),
+        [design],
+        points,
+        hidden_effects()[case],
+        mesh_dir,
+        increments=2,
+        defects=hidden_defects(case),
+    )
+    save_npy(path, field)
+    return field
+
+
+def save_npy(path: Path, array: np.ndarray) -> None:
+    """Write ``array`` to ``path`` whole or not at all (through a temporary file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path.with_suffix(".tmp.npy"), array)
+    path.with_suffix(".tmp.npy").replace(path)
 
 
 def box_centre(config: str) -> list[float]:

@@ -128,3 +128,30 @@ def test_a_benchmark_check_is_a_valid_skinid_check_command_started_at_the_box_ce
     spread = argparse.Namespace(**{**vars(args), "start": "spread", "mesh_drift": True})
     parsed = build_parser("skinid check").parse_args(bench.check_argv(files, tmp_path, [], spread)[1:])
     assert parsed.start is None and parsed.mesh_drift
+
+
+def test_a_killed_data_run_resumes_from_the_designs_it_finished(tmp_path, monkeypatch):
+    import numpy as np
+    from mpi4py import MPI
+
+    import inference.synthetic
+
+    bench = load_benchmark()
+    points = np.zeros((4, 2))
+    computed = []
+
+    def measured_fields(config, params, designs, *args, **kwargs):
+        computed.extend(designs)
+        return [np.full((len(points), 3), float(bench.DESIGNS.index(d))) for d in designs]
+
+    monkeypatch.setattr(inference.synthetic, "measured_fields", measured_fields)
+    path = tmp_path / "data_mesh_none.npy"
+    np.save(bench.design_path(path, 0), np.full((len(points), 3), 7.0))  # finished before the kill
+    fields = bench.data_fields(None, "none", points, "meshes", MPI.COMM_SELF, path)
+    assert computed == bench.DESIGNS[1:]
+    assert fields.shape == (len(bench.DESIGNS), len(points), 3)
+    assert np.all(fields[0] == 7.0) and np.all(fields[1] == 1.0)
+    assert np.array_equal(np.load(path), fields)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # the parts merged into one file
+    assert np.array_equal(bench.data_fields(None, "none", points, "meshes", MPI.COMM_SELF, path), fields)
+    assert computed == bench.DESIGNS[1:]  # the whole file read, nothing recomputed
