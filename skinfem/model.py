@@ -38,6 +38,7 @@ from skinfem.config import Config, SolverConfig
 from skinfem.effects import Effect, ModelTerms, get_effect
 from skinfem.fenics import JIT_OPTIONS, PETSc, dolfinx, ufl
 from skinfem.materials import LaminaStiffness, hgo_energy, membrane_energy, neo_hookean_energy
+from skinfem.memory import limit_factor_memory, raise_if_out_of_memory
 from skinfem.mesh import DEFAULT_MESH_DIR, TAGS, ensure_mesh, file_sha256, read_mesh
 from skinfem.params import Design, SkinParams
 from skinfem.pseudo_time import FarStart, pseudo_transient
@@ -235,7 +236,15 @@ class SkinModel:
             },
         )
         problem.solver.setConvergenceHistory(reset=True)  # each solve's residual norms
+        self._limit_factor_memory(problem)
         return problem
+
+    @staticmethod
+    def _limit_factor_memory(problem: dolfinx.fem.petsc.NonlinearProblem) -> None:
+        """Make the LU factor of the tangent now, with this rank's memory limit (:mod:`skinfem.memory`)."""
+        ksp = problem.solver.getKSP()
+        ksp.setOperators(problem.A)
+        limit_factor_memory(ksp.getPC())
 
     def _model_terms(self, effects: Sequence[str | Effect]) -> ModelTerms:
         """Baseline energy terms, edited by each effect; effect parameters become Constants."""
@@ -356,6 +365,7 @@ class SkinModel:
         of 10^5 dofs), e.g. while a model of another mesh runs on the same rank; the next Newton
         solve factorises again."""
         self.problem.solver.getKSP().getPC().reset()
+        self._limit_factor_memory(self.problem)
         self._rebuild_pending = True
 
     def _newton(self, policy: Factorisation) -> tuple[bool, int, float]:
@@ -370,6 +380,8 @@ class SkinModel:
             self._set_lag(1 if policy == Factorisation.EVERY_STEP else -2)
         self.problem.solve()
         reason = snes.getConvergedReason()
+        if reason == DIVERGED_LINEAR_SOLVE:
+            raise_if_out_of_memory(snes.getKSP().getPC())
         its = snes.getIterationNumber()  # 0: converged at the start, no Jacobian built
         if reuse and policy == Factorisation.EVERY_STEP:  # lag back from 1; "never" needs a rebuild first
             self._set_lag(-2)

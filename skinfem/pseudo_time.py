@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from skinfem.fenics import PETSc, dolfinx
+from skinfem.memory import limit_factor_memory, raise_if_out_of_memory
 
 FIRST_STEP = 10.0  # dt of the first step (benchmarks/far_start.py: 1, 3 and 10 all converge there)
 BUDGET = 80  # steps (factorisations) before giving up (benchmarks/far_start.py: up to 70)
@@ -135,7 +136,7 @@ def pseudo_transient(
     damping = tangent.getDiagonal()
     damping.abs()
     shift, du, previous, linearised = damping.duplicate(), x.duplicate(), x.duplicate(), x.duplicate()
-    ksp = _linear_solver(x.comm, refactor_krylov, krylov_rtol, 0.1 * atol)
+    ksp = _linear_solver(tangent, refactor_krylov, krylov_rtol, 0.1 * atol)
     norm = start = residual.norm()
     dt, steps, stale = first_step, [], True
     try:
@@ -169,11 +170,14 @@ def pseudo_transient(
     return FarStart(bool(norm < atol), float(start), tuple(steps))
 
 
-def _linear_solver(comm, refactor_krylov: int, krylov_rtol: float, krylov_atol: float) -> PETSc.KSP:
-    """MUMPS LU alone (``refactor_krylov = 0``) or as GMRES's right preconditioner (module doc)."""
-    ksp = PETSc.KSP().create(comm)
+def _linear_solver(tangent: PETSc.Mat, refactor_krylov: int, krylov_rtol: float, krylov_atol: float) -> PETSc.KSP:
+    """MUMPS LU of ``tangent`` alone (``refactor_krylov = 0``) or as GMRES's right preconditioner
+    (module doc), its memory limited to this rank's share (:mod:`skinfem.memory`)."""
+    ksp = PETSc.KSP().create(tangent.comm)
+    ksp.setOperators(tangent)
     ksp.getPC().setType("lu")
     ksp.getPC().setFactorSolverType("mumps")
+    limit_factor_memory(ksp.getPC())
     if refactor_krylov == 0:
         ksp.setType("preonly")
     else:
@@ -195,5 +199,7 @@ def _solve(ksp: PETSc.KSP, matrix: PETSc.Mat, rhs: PETSc.Vec, solution: PETSc.Ve
         ksp.getPC().setReusePreconditioner(False)
         ksp.solve(rhs, solution)
         refactor = True
+    if ksp.getConvergedReason() < 0:
+        raise_if_out_of_memory(ksp.getPC())
     its = ksp.getIterationNumber() if ksp.getType() != "preonly" else 0
     return its, refactor
