@@ -94,3 +94,27 @@ def test_ranks_on_this_machine_come_from_the_launcher(variables, ranks, monkeypa
     for name, value in variables.items():
         monkeypatch.setenv(name, value)
     assert memory.local_ranks() == ranks
+
+
+def test_a_check_whose_factors_do_not_fit_stops_with_one_line(tmp_path, mesh_dir):
+    from inference.observations import write_measurement
+    from tests.test_bad_inputs import grid, plausible_strain
+
+    xy = grid()
+    write_measurement(tmp_path / "m.csv", xy, plausible_strain(xy), (0.05, -0.05), 1.0, np.full((len(xy), 3), 1e-3))
+    command = skinid_command(
+        "check",
+        "--config",
+        "small",
+        "--mesh-dir",
+        mesh_dir,
+        "--out",
+        tmp_path / "out",
+        "--measurement",
+        tmp_path / "m.csv",
+    )
+    env = {**skinid_env(), memory.SHARE_VARIABLE: "60"}
+    res = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    errors = [line for line in res.stderr.splitlines() if "error" in line]
+    assert res.returncode == 2 and len(errors) == 1 and "LU factors of this mesh need about" in errors[0], res.stderr
+    assert not (tmp_path / "out").exists()
