@@ -155,3 +155,12 @@ def test_a_killed_data_run_resumes_from_the_designs_it_finished(tmp_path, monkey
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # the parts merged into one file
     assert np.array_equal(bench.data_fields(None, "none", points, "meshes", MPI.COMM_SELF, path), fields)
     assert computed == bench.DESIGNS[1:]  # the whole file read, nothing recomputed
+
+
+def test_comparing_data_that_are_not_made_yet_is_one_line(tmp_path):
+    import pytest
+
+    script = load_script(ROOT / "benchmarks" / "limit_data.py", "limit_data")
+    bench = load_benchmark()
+    with pytest.raises(SystemExit, match="data_q2-fine-coarser-m8_none.npy, .*data_q2-fine-m8_none.npy not made yet"):
+        script.kept_fields(bench, tmp_path, "q2-limit-m8", "none")
