@@ -61,8 +61,11 @@ def rank_share_mb() -> int | None:
     """This rank's share [MB] of the memory available on this machine when first asked
     (``MemAvailable`` / :func:`local_ranks`, or ``SKINID_RANK_MEMORY_MB``); None where it
     cannot be read."""
-    if os.environ.get(SHARE_VARIABLE):
-        return int(os.environ[SHARE_VARIABLE])
+    value = os.environ.get(SHARE_VARIABLE, "")
+    if value:
+        if not value.isdigit() or int(value) == 0:
+            raise ValueError(f"{SHARE_VARIABLE} must be a positive whole number of MB, got '{value}'")
+        return int(value)
     available = _meminfo_mb("MemAvailable")
     return None if available is None else available // local_ranks()
 

@@ -118,3 +118,16 @@ def test_a_check_whose_factors_do_not_fit_stops_with_one_line(tmp_path, mesh_dir
     errors = [line for line in res.stderr.splitlines() if "error" in line]
     assert res.returncode == 2 and len(errors) == 1 and "LU factors of this mesh need about" in errors[0], res.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("value", ["12GB", "0", "-5"])
+def test_a_share_that_is_not_a_number_of_mb_is_one_line(value, monkeypatch):
+    monkeypatch.setenv(memory.SHARE_VARIABLE, value)
+    memory.rank_share_mb.cache_clear()
+    try:
+        with pytest.raises(
+            ValueError, match=f"SKINID_RANK_MEMORY_MB must be a positive whole number of MB, got '{value}'"
+        ):
+            memory.rank_share_mb()
+    finally:
+        memory.rank_share_mb.cache_clear()
