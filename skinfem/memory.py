@@ -6,8 +6,9 @@ the most working memory it may use (ICNTL(23), in MB): its share of the memory a
 this machine when it first asks, divided among the ranks on the machine, less what the process
 already holds. When the analysis of a matrix needs more, MUMPS stops before allocating
 (INFOG(1) = -19) and :func:`raise_if_out_of_memory` raises :class:`FactorMemoryError` with the
-memory it needed (INFOG(16), MB) and the share it had. MUMPS allocates only what it uses
-within that limit, so the limit costs neither memory nor time.
+memory it needed (INFOG(16), MB) and the share it had. MUMPS may reserve address space
+towards the limit but touches only what it uses: a run that fits keeps its resident memory,
+fields and time (``benchmarks/results/memory_limit.json``).
 
 The share is read from ``/proc/meminfo`` (Linux); where it cannot be read no limit is set.
 Ranks on this machine are counted from the launcher's environment (MPICH/Hydra:
