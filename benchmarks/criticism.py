@@ -133,11 +133,25 @@ def describe_data(name: str) -> str:
 def measured_data(name: str, case: str, points, args, comm) -> np.ndarray:
     """Noise-free data of ``case`` on data mesh ``name`` (or the limit of a pair, :data:`LIMITS`),
     each mesh's fields kept in ``<out>/data_<mesh>_<case>.npy``."""
-    meshes = LIMITS.get(name, (name,))
     fields = [
-        data_fields(data_config(mesh), case, points, args.mesh_dir, comm, args.out / f"data_{mesh}_{case}.npy")
-        for mesh in meshes
+        data_fields(data_config(mesh), case, points, args.mesh_dir, comm, kept_data_path(args.out, mesh, case))
+        for mesh in data_meshes(name)
     ]
+    return combined_data(name, fields)
+
+
+def data_meshes(name: str) -> tuple[str, ...]:
+    """The meshes whose fields make data ``name``: itself, or a limit's pair (coarser, finer)."""
+    return LIMITS.get(name, (name,))
+
+
+def kept_data_path(folder: Path, mesh: str, case: str) -> Path:
+    """Where the fields of ``case`` on data mesh ``mesh`` are kept."""
+    return folder / f"data_{mesh}_{case}.npy"
+
+
+def combined_data(name: str, fields: list[np.ndarray]) -> np.ndarray:
+    """Data ``name`` from its meshes' fields (:func:`data_meshes` order): a limit is extrapolated."""
     return extrapolated(*fields) if name in LIMITS else fields[0]
 
 

@@ -26,8 +26,7 @@ sys.path.insert(0, str(HERE))
 
 def kept_fields(bench, folder: Path, name: str, case: str) -> list[np.ndarray]:
     """The kept fields (n_designs, n_points, 3) of ``name``'s meshes (one, or a limit's pair)."""
-    meshes = bench.LIMITS.get(name, (name,))
-    paths = [folder / f"data_{mesh}_{case}.npy" for mesh in meshes]
+    paths = [bench.kept_data_path(folder, mesh, case) for mesh in bench.data_meshes(name)]
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         raise SystemExit(f"limit_data.py: error: {', '.join(missing)} not made yet (run benchmarks/criticism.py)")
@@ -49,21 +48,21 @@ def main() -> None:
     xy = np.tile(dic_points(18.0, 1.0, np.random.default_rng(0)), (len(bench.DESIGNS), 1))  # as criticism.py
     fields = {name: kept_fields(bench, Path(folder), name, args.case) for folder, name in (args.data, args.against)}
 
-    def surface(parts: list[np.ndarray]) -> np.ndarray:  # (n_designs * n_points, 2)
-        field = bench.extrapolated(*parts) if len(parts) == 2 else parts[0]
+    def surface(field: np.ndarray) -> np.ndarray:  # (n_designs * n_points, 2)
         return field[..., :2].reshape(-1, 2)
 
-    (name, parts), (reference, reference_parts) = fields.items()
+    name, reference = fields
+    data, against = (surface(bench.combined_data(n, p)) for n, p in fields.items())
     record = {
         "command": "python benchmarks/limit_data.py --data {} {} --against {} {} --case {}".format(
             *args.data, *args.against, args.case
         ),
         "case": args.case,
-        f"{name} against {reference}": convergence.band_changes(surface(parts), surface(reference_parts), xy),
+        f"{name} against {reference}": convergence.band_changes(data, against, xy),
         **{
-            f"{n}: finer mesh against coarser": convergence.band_changes(surface(p[1:]), surface(p[:1]), xy)
+            f"{n}: finer mesh against coarser": convergence.band_changes(surface(p[1]), surface(p[0]), xy)
             for n, p in fields.items()
-            if len(p) == 2
+            if n in bench.LIMITS
         },
     }
     args.results.write_text(json.dumps(record, indent=2) + "\n")
