@@ -191,7 +191,7 @@ def data_family(h_edge: float, case: str, points: np.ndarray, args) -> np.ndarra
 
     pair = {0.5: "q2-fine-coarser", 0.25: "q2-fine"}
     if h_edge in pair:
-        return np.load(args.data_dir / f"data_{pair[h_edge]}_{case}.npy")
+        return np.load(bench.kept_data_path(args.data_dir, pair[h_edge], case))
     config = bench.data_config("q2-fine-coarser").with_changes(mesh={"h_edge": h_edge})
     path = args.out / f"data_edge{h_edge:g}_{case}.npy"
     return bench.data_fields(config, case, points, args.mesh_dir, MPI.COMM_WORLD, path)
