@@ -2,7 +2,7 @@
 
     python benchmarks/coverage.py --emulator EMU --data TEST.h5 [--setups single frames membranes]
         [--noise-sd 0 0.002] [--emulator-error on scaled shift off] [--n 3] [--store out/coverage] [--starts 1]
-        [--results benchmarks/results/coverage_fresh]
+        [--results benchmarks/results/coverage_fresh] [--data-from model]
 
 For every setup x noise sd x error model, ``inference.coverage.coverage_study`` runs every case
 (test materials of TEST.h5 x starting designs; resumable in ``--store``); its summary (with the
@@ -11,6 +11,9 @@ cases run by this call and their seconds per case, when it ran any) is written t
 ranks_<label>.png there. Sampler: 2 chains x 500 draws after 300 warm-up in one process (run
 setups or halves of ``--materials`` in parallel processes instead), the GP variance fixed at the
 mode (the default 4 x 1000 exact-variance posterior is too slow for hundreds of cases on 2 cores).
+``--data-from model``: each case's truth drawn from the prior and its PC weights from the
+likelihood (``inference.coverage.run_case``), with a stated ``--noise-sd`` > 0: the posterior's
+own model, calibrated by construction; labels end in ``_model-data``.
 """
 
 from __future__ import annotations
@@ -47,7 +50,15 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=3, help="frames or membranes observed (frames, membranes setups)")
     parser.add_argument("--starts", type=int, help="starting designs per material (default: all; 1: independent cases)")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the summaries and rank histograms")
+    parser.add_argument(
+        "--data-from",
+        choices=["fe", "model"],
+        default="fe",
+        help="the test materials' FE strains, or truths from the prior and weights from the posterior's own model",
+    )
     args = parser.parse_args()
+    if args.data_from == "model" and min(args.noise_sd) <= 0:
+        parser.error("--data-from model needs a stated --noise-sd > 0")
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     args.results.mkdir(exist_ok=True)
     for error in args.emulator_error:
@@ -63,7 +74,8 @@ def main() -> None:
         for sd in args.noise_sd:
             for setup in args.setups:
                 count = "" if args.n == 3 or setup == "single" else str(args.n)
-                label = f"{setup}{count}_noise{sd:g}_error-{error}"
+                source = "_model-data" if args.data_from == "model" else ""
+                label = f"{setup}{count}_noise{sd:g}_error-{error}{source}"
                 summary = run_study(args, emulator, data, setup, settings, sd, label)
                 print(label, {n: (e.coverage_50, e.coverage_95) for n, e in summary.parameters.items()}, flush=True)
 
@@ -99,6 +111,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         noise_sd=sd,
         materials=args.materials,
         starts=args.starts,
+        data_from=args.data_from,
     )
     run = own_cases(cases, args.materials) - done_before
     timing = {"cases_run": run, "seconds_per_case": (time.perf_counter() - start) / run} if run else {}

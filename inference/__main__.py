@@ -147,6 +147,8 @@ def _check_coverage(args, n_max: int | None, n_designs: int) -> None:
         raise ValueError(f"--noise-seeds must be >= 1, got {args.noise_seeds}")
     if args.starts is not None and not 1 <= args.starts <= n_designs:
         raise ValueError(f"--starts must be in [1, {n_designs}], got {args.starts}")
+    if args.data_from == "model" and args.noise_sd <= 0:
+        raise ValueError("--data-from model needs a stated --noise-sd > 0 (an unknown sd's prior is too wide)")
 
 
 def _coverage(args, emulator, data) -> None:
@@ -163,6 +165,7 @@ def _coverage(args, emulator, data) -> None:
         args.noise_seeds,
         int_list(args.materials, "--materials"),
         args.starts,
+        args.data_from,
     )
     for name, e in res.parameters.items():
         print(

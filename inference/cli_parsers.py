@@ -244,6 +244,13 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         type=int,
         help="starting designs per material, rotating with the material (default: all; 1: independent cases)",
     )
+    p.add_argument(
+        "--data-from",
+        choices=["fe", "model"],
+        default="fe",
+        help="the test materials' FE strains, or truths from the prior and PC weights from the posterior's own "
+        "model (calibrated by construction: tests the sampler; needs --noise-sd > 0)",
+    )
     _study_outputs(p)
     p = _study_command(
         sub,

@@ -29,14 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
+from inference.model import ObservedWeights, draw_from_model
 from inference.observations import Observation, from_dataset
 from inference.plots import LABELS, pyplot, save_figure
-from inference.studies import SamplerSettings, emulator_error_of, sample_of, spread_designs
+from inference.studies import SamplerSettings, emulator_error_of, sample_skin_posterior, skin_posterior, spread_designs
 from skinfem.io import StrainDataset
 from skinfem.outputs import write_text
 from surrogate.emulator import Emulator
 
 SETUPS = ("single", "frames", "membranes")
+DATA_SOURCES = ("fe", "model")
 RANK_DRAWS = 99
 GOAL_95, GOAL_50 = (0.90, 0.99), (0.40, 0.60)
 
@@ -110,17 +112,35 @@ def noisy(observations: list[Observation], sd: float, seed: int) -> list[Observa
 
 
 def run_case(
-    emulator: Emulator, data: StrainDataset, case: CoverageCase, settings: SamplerSettings, noise_sd: float = 0.0
+    emulator: Emulator,
+    data: StrainDataset,
+    case: CoverageCase,
+    settings: SamplerSettings,
+    noise_sd: float = 0.0,
+    data_from: str = "fe",
 ) -> CaseResult:
-    """Sample the case's posterior and rank its truth."""
+    """Sample the case's posterior and rank its truth.
+
+    ``data_from`` "fe": the material's simulated strains, its parameters the truth; "model": the
+    truth drawn from the prior and the PC weights from the likelihood at it
+    (:func:`inference.model.draw_from_model`), observed through the case's designs and frames
+    with its noise sd stated: the posterior's own model, on which it is calibrated by
+    construction (what departs is the sampler's or the GP variance fixed at the mode's doing)."""
     observations = from_dataset(data, case.material, list(case.designs), list(case.frames))
     if noise_sd > 0:
         observations = noisy(observations, noise_sd, 1000 * case.material + case.seed)
     case_settings = replace(settings, seed=settings.seed + case.seed, progress=False)
-    samples = sample_of(emulator, observations, case_settings, noise="known" if noise_sd > 0 else "halfcauchy")
+    noise = "known" if noise_sd > 0 else "halfcauchy"
+    posterior = skin_posterior(emulator, ObservedWeights.project(emulator, observations), case_settings, noise)
+    truth = data.params[case.material]
+    if data_from == "model":
+        values, weights = draw_from_model(posterior, 1000 * case.material + case.seed)
+        truth = values[:5]
+        observed = replace(posterior.observed, weights=weights, truth=truth)
+        posterior = skin_posterior(emulator, observed, case_settings, noise)
+    samples = sample_skin_posterior(posterior, case_settings)
     draws = samples.draws[..., :5].reshape(-1, 5)
     divergences = int(samples.diverging.sum())
-    truth = data.params[case.material]
     return case_result(draws, truth, emulator.param_bounds, divergences, samples.divergences_before_resampling)
 
 
@@ -153,9 +173,15 @@ def coverage_study(
     noise_seeds: int = 1,
     materials: list[int] | None = None,
     starts: int | None = None,
+    data_from: str = "fe",
 ) -> CoverageSummary:
-    """Run (or resume) every case of ``setup`` (:func:`cases_of`); write ``coverage.json`` and
+    """Run (or resume) every case of ``setup`` (:func:`cases_of`) on data from the FE model or
+    from the posterior's own model (``data_from``, :func:`run_case`); write ``coverage.json`` and
     ``ranks.png``."""
+    if data_from not in DATA_SOURCES:
+        raise ValueError(f"data_from must be one of {DATA_SOURCES}, got '{data_from}'")
+    if data_from == "model" and noise_sd <= 0:
+        raise ValueError("data drawn from the model need a stated noise sd (> 0): its unknown sd's prior is too wide")
     out = Path(out)
     results, cases = [], cases_of(data, setup, n, materials, noise_seeds, starts)
     for case in cases:
@@ -163,15 +189,17 @@ def coverage_study(
         if path.exists():
             results.append(CaseResult(**json.loads(path.read_text())))
             continue
-        results.append(run_case(emulator, data, case, settings, noise_sd))
+        results.append(run_case(emulator, data, case, settings, noise_sd, data_from))
         write_text(path, json.dumps(asdict(results[-1])) + "\n")
-    summary = summarise(results, setup, n, noise_sd, settings, [case.material for case in cases])
+    summary = summarise(results, setup, n, noise_sd, settings, [case.material for case in cases], data_from)
     write_text(out / "coverage.json", json.dumps(summary.to_json(), indent=2) + "\n")
     observed = setup if setup == "single" else f"{setup} (n = {n})"
+    source = ", data from the model" if data_from == "model" else ""
+    error = emulator_error_of(settings)
     rank_histograms(
         np.array([r.rank for r in results]),
         out / "ranks.png",
-        f"{observed}, noise sd {noise_sd:g}, emulator error {emulator_error_of(settings)}: {len(results)} cases",
+        f"{observed}, noise sd {noise_sd:g}, emulator error {error}{source}: {len(results)} cases",
     )
     return summary
 
@@ -202,6 +230,7 @@ class CoverageSummary:
     parameters: dict[str, ParameterCoverage]
     cases_resampled: int = 0  # posteriors run again with smaller steps (sampling.RESAMPLE_ACCEPT)
     divergences_before_resampling: int = 0  # their first runs' divergences
+    data_from: str = "fe"  # DATA_SOURCES: the FE model's strains or the posterior's own model (run_case)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -223,6 +252,7 @@ def summarise(
     noise_sd: float,
     settings: SamplerSettings,
     materials: list[int],
+    data_from: str = "fe",
 ) -> CoverageSummary:
     """Coverage per parameter with its sd over ``materials`` (one per result), and whether it meets the goal."""
     n_cases, groups = len(results), np.asarray(materials)
@@ -242,7 +272,17 @@ def summarise(
     divergences = int(sum(r.divergences for r in results))
     first = [r.divergences_before_resampling for r in results if r.divergences_before_resampling is not None]
     return CoverageSummary(
-        setup, n, noise_sd, n_cases, len(set(materials)), divergences, settings, parameters, len(first), sum(first)
+        setup,
+        n,
+        noise_sd,
+        n_cases,
+        len(set(materials)),
+        divergences,
+        settings,
+        parameters,
+        len(first),
+        sum(first),
+        data_from,
     )
 
 

@@ -610,6 +610,22 @@ def prior_draws(posterior: SkinPosterior, n: int, seed: int) -> np.ndarray:
     return np.column_stack([draws[name].reshape(n).numpy() for name in posterior.names])
 
 
+def draw_from_model(posterior: SkinPosterior, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One draw of the whole model: values (dim,) from the priors (theta in degrees) and PC
+    weights (n_obs, G) from the likelihood at them (:func:`pyro_model` with its observation
+    unconditioned, GP covariance and shift Jacobian at the drawn parameters). Data a posterior
+    of ``posterior``'s setup is calibrated on by construction (simulation-based calibration)."""
+    from pyro.infer import Predictive
+
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        draw = Predictive(pyro.poutine.uncondition(pyro_model), num_samples=1)(posterior)
+    values = np.array([float(draw[name].reshape(())) for name in posterior.names])
+    n_obs, n_weights = posterior.weights.shape
+    weights = draw["weights"].reshape(n_weights, n_obs).T  # the likelihood's order is (g, o)
+    return values, weights.detach().numpy()
+
+
 def psd_root(cov: np.ndarray) -> np.ndarray:
     """R (k, k) with R R^T = cov for a symmetric positive semi-definite cov (k, k)."""
     eigenvalues, vectors = np.linalg.eigh(cov)

@@ -68,19 +68,32 @@ def emulator_error_of(settings: SamplerSettings) -> str:
     return "scaled" if settings.emulator_scale else "shift" if settings.emulator_shift else "on"
 
 
-def sample_of(
-    emulator: Emulator, observations: list[Observation], settings: SamplerSettings, noise: str = "halfcauchy"
-) -> PosteriorSamples:
-    """The posterior of ``observations`` (noise "halfcauchy" or "known"), sampled with ``settings``."""
-    posterior = SkinPosterior(
+def skin_posterior(
+    emulator: Emulator, observed: ObservedWeights, settings: SamplerSettings, noise: str = "halfcauchy"
+) -> SkinPosterior:
+    """The posterior of ``observed`` weights (noise "halfcauchy" or "known") with the error model of ``settings``."""
+    return SkinPosterior(
         emulator,
-        ObservedWeights.project(emulator, observations),
+        observed,
         noise=noise,
         gp_variance=settings.gp_variance,
         emulator_error=settings.emulator_error,
         emulator_scale=settings.emulator_scale,
         emulator_shift=settings.emulator_shift,
     )
+
+
+def sample_of(
+    emulator: Emulator, observations: list[Observation], settings: SamplerSettings, noise: str = "halfcauchy"
+) -> PosteriorSamples:
+    """The posterior of ``observations`` (noise "halfcauchy" or "known"), sampled with ``settings``."""
+    return sample_skin_posterior(
+        skin_posterior(emulator, ObservedWeights.project(emulator, observations), settings, noise), settings
+    )
+
+
+def sample_skin_posterior(posterior: SkinPosterior, settings: SamplerSettings) -> PosteriorSamples:
+    """``posterior`` sampled with ``settings``."""
     return sample_posterior(
         posterior,
         chains=settings.chains,

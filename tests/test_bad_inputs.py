@@ -614,6 +614,11 @@ CASES = {
     "study-coverage-noise-negative": (f"{COVERAGE} --noise-sd -0.001", "--noise-sd must be >= 0, got -0.001", None),
     "study-coverage-no-noise-seed": (f"{COVERAGE} --noise-seeds 0", "--noise-seeds must be >= 1, got 0", None),
     "study-coverage-starts-beyond-the-designs": (f"{COVERAGE} --starts 3", "--starts must be in [1, 2], got 3", None),
+    "study-coverage-model-data-without-noise": (
+        f"{COVERAGE} --data-from model",
+        "--data-from model needs a stated --noise-sd > 0",
+        None,
+    ),
     "study-setups-design-out-of-range": (
         "study setups --emulator {emu} --data {data} --designs 9 --out {out}",
         "design 9 is not in [0, 2)",

@@ -6,15 +6,19 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from inference import coverage
-from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study, summarise
+from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study, noisy, summarise
+from inference.model import ObservedWeights, draw_from_model
+from inference.observations import from_dataset
 from inference.studies import (
     EMULATOR_ERRORS,
     SamplerSettings,
     emulator_error_flags,
     emulator_error_of,
     resolve_emulator_error,
+    skin_posterior,
     spread_designs,
 )
 from skinfem.io import StrainDataset
@@ -122,3 +126,40 @@ def test_a_study_ranks_the_truth_and_resumes_without_recomputing(small_emulator,
         json.loads((tmp_path / "coverage.json").read_text())["parameters"]["mu"]["coverage_95"]
         == summary.parameters["mu"].coverage_95
     )
+
+
+def test_a_draw_from_the_model_is_its_likelihood_at_the_drawn_parameters(small_emulator, data):
+    """draw_from_model (Pyro's Predictive over the reference model, two observations: the
+    likelihood's (g, o) order) against the posterior's own whitening of the same covariance
+    (Cholesky, another route): at the drawn values the whitened weights are standard normal,
+    and the values are uniform over the prior box."""
+    emulator = Emulator.load(small_emulator)
+    material = int(np.flatnonzero(data.split == 1)[0])
+    observations = noisy(from_dataset(data, material, [0, 1], [-1]), 1e-4, 0)
+    settings = SamplerSettings(**emulator_error_flags("shift"))
+    posterior = skin_posterior(emulator, ObservedWeights.project(emulator, observations), settings, "known")
+    values, white = [], []
+    for seed in range(200):
+        v, weights = draw_from_model(posterior, seed)
+        if seed == 7:
+            seventh = weights
+        drawn = skin_posterior(emulator, replace(posterior.observed, weights=weights), settings, "known")
+        w, _ = drawn.whitened_residuals(*drawn.latents(torch.as_tensor(v)))
+        values.append(v)
+        white.append(w.detach().numpy().ravel())
+    white, share = (
+        np.concatenate(white),
+        (np.array(values) - emulator.param_bounds[:, 0]) / np.ptp(emulator.param_bounds, axis=1),
+    )
+    n = white.size
+    assert abs(white.mean()) < 4 / np.sqrt(n) and abs(white.var() - 1) < 4 * np.sqrt(2 / n)
+    assert np.all((share >= 0) & (share <= 1)) and np.all(np.abs(share.mean(0) - 0.5) < 4 * np.sqrt(1 / 12 / 200))
+    again = draw_from_model(posterior, 7)  # seeded
+    assert np.array_equal(again[0], values[7]) and np.array_equal(again[1], seventh)
+
+
+def test_data_from_the_model_need_a_stated_noise(small_emulator, data, tmp_path):
+    with pytest.raises(ValueError, match="need a stated noise sd"):
+        coverage_study(Emulator.load(small_emulator), data, "single", SamplerSettings(), tmp_path, data_from="model")
+    with pytest.raises(ValueError, match="data_from must be one of"):
+        coverage_study(Emulator.load(small_emulator), data, "single", SamplerSettings(), tmp_path, data_from="dic")
