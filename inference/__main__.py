@@ -445,11 +445,17 @@ def _measurement_show(args, settings) -> None:
     from inference.plots import plot_field
 
     if args.file.is_file() and args.file.read_bytes().startswith(HEADER.encode()):
+        if args.alpha is not None or args.t is not None:
+            raise ValueError(
+                f"{args.file} is a skinid measurement: its design and load fraction are in it (drop --alpha, --t)"
+            )
         m = read_measurement(args.file, settings.block_half)
         xy, strain, alpha, t = m.xy, m.strain, m.alpha, m.t
     else:
+        if args.t is not None and args.alpha is None:
+            raise ValueError("--t is the load fraction of a design: give the design with --alpha")
         field = _dic_field(args, settings)
-        xy, strain, alpha, t = field.xy, field.strain, args.alpha, args.t
+        xy, strain, alpha, t = field.xy, field.strain, args.alpha, 1.0 if args.t is None else args.t
     title = f"{args.file.name}: {len(xy)} points in the membrane frame"
     if alpha is not None:
         summary = assess_plausibility(xy, strain, alpha, t, settings.membrane_half).summary()
@@ -467,6 +473,8 @@ def cmd_measurement(args) -> None:
     from skinfem.outputs import check_output
 
     check_output(args.out, args.force)
+    if args.t is not None and not 0 < args.t <= 1:  # before the file is read
+        raise ValueError(f"--t: the load fraction must be in (0, 1], got {args.t}")
     settings = dic_settings(args)
     if args.action == "show":
         _measurement_show(args, settings)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from skinfem.cli import CommandParser, add_design, add_output, add_pca_scaling, add_renamed_option
+from skinfem.cli import ROUTES, CommandParser, add_command, add_design, add_output, add_pca_scaling, add_renamed_option
 from skinfem.mesh import DEFAULT_MESH_DIR
 
 
@@ -21,8 +21,8 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
         "--gp-variance",
         choices=["exact", "mode"],
         default="mode",
-        help="GP covariance fixed at the posterior mode (fast; coverage measured on it) or "
-        "evaluated at every step (exact)",
+        help="mode: the GP covariance fixed at the posterior mode (fast; coverage measured on it); "
+        "exact: evaluated at every step",
     )
     p.add_argument(
         "--emulator-error",
@@ -30,16 +30,16 @@ def _add_sampler(p: argparse.ArgumentParser) -> None:
         default="auto",
         help="carry the emulator's held-out error and PCA truncation in the likelihood (on), that "
         "error times a sampled material scale (scaled), the error as a shift of the parameters "
-        "shared by every observation (shift), or the GP variance only (off); auto (default): shift "
-        "when the emulator fitted it (refit older emulators), else on",
+        "shared by every observation (shift), or the GP variance only (off); auto: shift when the "
+        "emulator fitted it, else on",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
     """The parser of ``skinid <command>`` for ``prog`` ending in infer, noise, check, measurement or study."""
-    parser = CommandParser(prog=prog, description=__doc__.splitlines()[0])
     command = next(name for name in PARSERS if prog.endswith(name))
+    parser = CommandParser(prog=prog, description=ROUTES[command][1])
     PARSERS[command](parser)
     return parser
 
@@ -57,14 +57,14 @@ def _infer_parser(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--frames",
-        help="with --data: frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 "
-        "(write the '=': the value starts with '-') (default: -1)",
+        help="with --data: frame indices, e.g. --frames -1; a list needs the '=': --frames=-3,-2,-1 (default: -1)",
     )
     parser.add_argument(
         "--noise",
         choices=["halfcauchy", "known"],
         default="halfcauchy",
-        help="unknown noise per component, or the measurement's sd columns",
+        help="halfcauchy: an unknown sd per strain component, sampled; known: the measurement files' "
+        "sd_exx, sd_eyy, sd_exy columns",
     )
     add_output(parser, "output directory")
     _add_sampler(parser)
@@ -75,7 +75,7 @@ def _noise_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="clean dataset (.h5)")
     parser.add_argument("--length", type=float, required=True, help="correlation length [mm]")
     parser.add_argument(
-        "--level", type=float, required=True, help="amplitude as a fraction of the max |strain| of the training data"
+        "--level", type=float, required=True, help="noise sd as a fraction of the max |strain| of the training data"
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     add_output(parser, "noisy dataset (.h5)")
@@ -85,7 +85,9 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
     """``skinid check``: model criticism of measurements against the FE model."""
     parser.add_argument("--measurement", type=Path, nargs="+", required=True, help="measurement CSV file(s)")
     parser.add_argument(
-        "--config", help="preset or TOML of the mesh the check runs on (default: the emulator's dataset configuration)"
+        "--config",
+        help="preset or TOML of the mesh the check runs on (needed without --emulator; default: the "
+        "emulator's dataset configuration; for measurements of real skin: check)",
     )
     start = parser.add_mutually_exclusive_group()
     start.add_argument(
@@ -119,7 +121,7 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
         "--dic-window", type=float, default=1.0, help="the DIC strain window (virtual strain gauge) side [mm]"
     )
     parser.add_argument(
-        "--spacing", type=float, default=1.0, help="use one measured point per square of this side [mm]"
+        "--spacing", type=float, default=1.0, help="thin the measured points to one per square of this side [mm]"
     )
     parser.add_argument(
         "--no-discretisation",
@@ -142,10 +144,13 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
         help="let the mesh-error correction follow the parameters to first order (both meshes' exact "
         "sensitivities at the baseline; for candidates that move the model far, e.g. a thicker skin)",
     )
-    parser.add_argument("--candidates", nargs="+", help="effects to test (default: all registered)")
-    parser.add_argument("--add", nargs="+", default=[], help="effects to add, in order, e.g. pre_stretch")
+    effects = "pre_stretch, muscle_stiffness, skin_thickness, compressibility, bonding"  # skinfem.effects.EFFECTS
+    parser.add_argument("--candidates", nargs="+", help=f"effects to test, of {effects} (default: all)")
+    parser.add_argument("--add", nargs="+", default=[], help=f"effects to add, in order, of {effects}")
     parser.add_argument("--increments", type=int, help="load increments of the FE runs (default: config's)")
-    parser.add_argument("--confirm", type=int, default=2, help="top candidates calibrated for real")
+    parser.add_argument(
+        "--confirm", type=int, default=2, help="top-ranked candidates recalibrated with full FE runs, per round"
+    )
     parser.add_argument("--mesh-dir", type=Path, default=DEFAULT_MESH_DIR, help="mesh directory")
     parser.add_argument("--quiet", action="store_true", help="no progress lines (phases, calibration steps) on stderr")
 
@@ -153,24 +158,24 @@ def _check_parser(parser: argparse.ArgumentParser) -> None:
 def _measurement_parser(parser: argparse.ArgumentParser) -> None:
     """``skinid measurement import|show``: DIC exports."""
     sub = parser.add_subparsers(dest="action", required=True)
-    p = sub.add_parser("import", help="a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
+    p = add_command(sub, "import", "a DIC export -> a measurement CSV (membrane frame, mm, log strain)")
     p.add_argument("file", type=Path, help="DIC export (VIC, DaVis, DICe or a table)")
     _add_dic_import(p)
     add_design(p, "the membrane design (alpha11, alpha22)", required=True)
     p.add_argument("--t", type=float, required=True, help="load fraction of this image, in (0, 1]")
     p.add_argument("--no-check", action="store_true", help="skip the plausibility check (not recommended)")
     add_output(p, "measurement CSV to write")
-    p = sub.add_parser("show", help="plot an imported field (exx, eyy, exy maps, membrane outline)")
+    p = add_command(sub, "show", "plot an imported field (exx, eyy, exy maps, membrane outline)")
     p.add_argument("file", type=Path, help="DIC export, or a skinid measurement CSV")
     _add_dic_import(p)
     add_design(p, "the membrane design: report the plausibility check on the figure")
-    p.add_argument("--t", type=float, default=1.0, help="with --alpha: load fraction")
+    p.add_argument("--t", type=float, help="with --alpha: load fraction of this image, in (0, 1] (default: 1)")
     add_output(p, "figure (.png)")
 
 
 def _study_command(sub, name: str, help: str, data: str, emulator: bool = True) -> argparse.ArgumentParser:
     """One ``skinid study`` command with its inputs: the emulator (when it takes one) and a dataset."""
-    p = sub.add_parser(name, help=help)
+    p = add_command(sub, name, help)
     if emulator:
         p.add_argument("--emulator", type=Path, required=True, help="emulator directory")
     p.add_argument("--data", type=Path, required=True, help=data)
@@ -201,7 +206,7 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--frames",
         default="-1",
-        help="frame indices, e.g. --frames=-1 or --frames=-3,-2,-1 (write the '=': the value starts with '-')",
+        help="frame indices, e.g. --frames -1; a list needs the '=': --frames=-3,-2,-1",
     )
     _study_outputs(p)
     p = _study_command(sub, "setups", "single vs multi-frame vs multi-membrane (the paper's Fig. 8)", "dataset (.h5)")
@@ -272,7 +277,7 @@ def _study_parser(parser: argparse.ArgumentParser) -> None:
         type=float,
         nargs="+",
         default=[0.01, 0.05, 0.10],
-        help="noise amplitudes as fractions of the max |strain| of the training data",
+        help="noise sds as fractions of the max |strain| of the training data",
     )
     p.add_argument("--gp-fraction", type=float, default=0.1, help="share of training rows for the GPs")
     p.add_argument("--restarts", type=int, default=2, help="optimizer restarts per GP")

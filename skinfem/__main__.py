@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skinfem.cli import CommandParser, add_design, add_output, refuse
+from skinfem.cli import ROUTES, CommandParser, add_command, add_design, add_output, refuse
 from skinfem.config import PARAM_NAMES, ConfigError, load_config
 from skinfem.mesh import DEFAULT_MESH_DIR
 
@@ -26,14 +26,14 @@ def _add_config(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = CommandParser(prog="skinid", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="skinid", description="the forward model: mesh, simulate, sweep, merge, info")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("mesh", help="generate the gmsh mesh of a configuration")
+    p = add_command(sub, "mesh", ROUTES["mesh"][1])
     _add_config(p)
     p.add_argument("--force", action="store_true", help="regenerate the mesh file if it exists")
 
-    p = sub.add_parser("simulate", help="run one simulation and write a one-entry dataset")
+    p = add_command(sub, "simulate", ROUTES["simulate"][1])
     _add_config(p)
     units = {"mu": "MPa", "k1": "MPa", "k2": "-", "kappa": "-", "theta": "deg"}
     for name in PARAM_NAMES:
@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_output(p, "output dataset (.h5)", replaces="--out and --fields")
     p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf and its .h5; not the --out name)")
 
-    p = sub.add_parser("sweep", help="Latin hypercube x designs -> dataset (.h5), resumable")
+    p = add_command(sub, "sweep", ROUTES["sweep"][1])
     _add_config(p)
     add_output(p, "output dataset (.h5)", resumable=True)
     p.add_argument("--retry-failed", action="store_true", help="with --resume: rerun failed simulations")
@@ -50,11 +50,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ranks-per-sim", type=int, default=1, help="MPI ranks per simulation")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    p = sub.add_parser("merge", help="join the shard files of one sweep")
+    p = add_command(sub, "merge", ROUTES["merge"][1])
     p.add_argument("shards", type=Path, nargs="+", help="shard datasets (.h5)")
     add_output(p, "merged dataset (.h5)")
 
-    p = sub.add_parser("info", help="summary of a dataset")
+    p = add_command(sub, "info", ROUTES["info"][1])
     p.add_argument("data", type=Path, help="dataset (.h5)")
     return parser
 

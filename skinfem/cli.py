@@ -65,6 +65,11 @@ class _DeprecatedSpelling(argparse.Action):
         setattr(namespace, self.dest, values)
 
 
+def add_command(sub: argparse._SubParsersAction, name: str, help: str) -> argparse.ArgumentParser:
+    """The parser of a (sub)command: its ``--help`` opens with the line that lists it among its siblings."""
+    return sub.add_parser(name, help=help, description=help.replace("%%", "%"))
+
+
 def add_design(parser: argparse.ArgumentParser, help: str, *, required: bool = False) -> None:
     """``--alpha A11 A22``: a membrane design's eigen-strains along x and y [-]."""
     parser.add_argument("--alpha", type=float, nargs=2, required=required, metavar=("A11", "A22"), help=help)
@@ -142,9 +147,12 @@ def version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] in ("-h", "--help"):
+    if argv and argv[0] in ("-h", "--help"):
         print(usage())
         return 0
+    if not argv:
+        print(f"skinid: a command is needed\n\n{usage()}", file=sys.stderr)
+        return 2
     if argv[0] == "--version":
         print(f"skinid {version()}")
         return 0

@@ -6,13 +6,13 @@ import sys
 import time
 from pathlib import Path
 
-from skinfem.cli import CommandParser, add_output, add_pca_scaling, refuse
+from skinfem.cli import ROUTES, CommandParser, add_command, add_output, add_pca_scaling, refuse
 
 
 def build_parser() -> CommandParser:
-    parser = CommandParser(prog="skinid surrogate", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="skinid surrogate", description=ROUTES["surrogate"][1])
     sub = parser.add_subparsers(dest="action", required=True)
-    p = sub.add_parser("fit", help="fit PCA + GPs on a dataset's training materials")
+    p = add_command(sub, "fit", "fit PCA + GPs on a dataset's training materials")
     p.add_argument("--data", type=Path, required=True, help="dataset (.h5)")
     add_output(p, "emulator directory")
     p.add_argument(
@@ -34,7 +34,7 @@ def build_parser() -> CommandParser:
         "(as many as training materials: leave one material out)",
     )
     p.add_argument("--no-validate", action="store_true", help="skip validation on the test materials")
-    p = sub.add_parser("validate", help="R² per PC and field errors on held-out materials")
+    p = add_command(sub, "validate", "R² per PC and field errors on held-out materials")
     p.add_argument(
         "--emulator",
         type=Path,

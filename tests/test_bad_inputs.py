@@ -733,6 +733,21 @@ CASES = {
         file("bad.txt", ""),
     ),
     "import-alpha-nan": (f"{IMPORT.replace('0.05', 'nan')} " + str(DIC), "alpha must be two finite numbers", None),
+    "import-t-beyond-one": (
+        f"{IMPORT.replace('0.8', '1.5')} " + str(DIC),
+        "--t: the load fraction must be in (0, 1], got 1.5",
+        None,
+    ),
+    "show-t-without-alpha": (  # was ignored: the figure said nothing of t
+        f"measurement show {DIC} --t 0.5 --out {{out}}.png",
+        "--t is the load fraction of a design: give the design with --alpha",
+        None,
+    ),
+    "show-measurement-with-alpha": (  # was ignored: the file's design was used
+        "measurement show {m} --alpha 0.05 0.05 --out {out}.png",
+        "is a skinid measurement: its design and load fraction are in it",
+        None,
+    ),
     "show-missing-file": (
         "measurement show {tmp}/none.csv --out {out}.png",
         "DIC file '{tmp}/none.csv' does not exist",
@@ -756,6 +771,15 @@ def test_bad_input_is_refused_in_one_line_before_computing(case, inputs, tmp_pat
     code, err = run_here(shlex.split(arguments.format(**paths)), capsys)
     assert_refused(code, err, message.format(**paths))
     assert snapshot(tmp_path, inputs.folder) == before
+
+
+def test_a_load_fraction_out_of_range_is_refused_before_the_export_is_read(tmp_path, capsys):
+    from skinfem.cli import main
+
+    code = main(shlex.split(IMPORT.replace("0.8", "0").format(out=tmp_path / "m")) + [str(DIC)])
+    out, err = capsys.readouterr()
+    assert code == 2 and "got 0.0" in err
+    assert out == ""  # no "read N rows of ..." line: the file was not read
 
 
 # ---------------------------------------------------------------- outputs

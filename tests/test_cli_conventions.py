@@ -141,6 +141,34 @@ def test_version_is_the_installed_packages():
     assert len(res.stdout.splitlines()) == 1
 
 
+def test_skinid_without_a_command_is_refused_with_the_list_of_commands(capsys):
+    from skinfem.cli import ROUTES, main
+
+    assert main([]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("skinid: a command is needed")
+    assert all(f"  {name} " in err for name in ROUTES)
+
+
+@pytest.mark.parametrize("command", list(PARSERS))
+def test_help_opens_with_the_line_that_lists_the_command(command):
+    from skinfem.cli import ROUTES
+
+    description = PARSERS[command].description
+    top = command.split()[0] if command else ""
+    assert description and "``" not in description and "%%" not in description
+    if top in ROUTES and command == top:
+        assert description == ROUTES[top][1]
+
+
+def test_the_check_names_every_registered_effect_it_can_add_or_test():
+    from skinfem.effects import EFFECTS
+
+    for option in ("--add", "--candidates"):
+        text = next(a.help for a in PARSERS["check"]._actions if option in a.option_strings)
+        assert text.split(" of ", 1)[1].split(" (")[0].split(", ") == list(EFFECTS), text
+
+
 @pytest.mark.parametrize("command", list(PARSERS))
 def test_help_shows_every_default(command, capsys, monkeypatch):
     from skinfem.cli import main
