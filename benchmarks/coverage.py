@@ -2,7 +2,7 @@
 
     python benchmarks/coverage.py --emulator EMU --data TEST.h5 [--setups single frames membranes]
         [--noise-sd 0 0.002] [--emulator-error on scaled shift off] [--n 3] [--store out/coverage] [--starts 1]
-        [--results benchmarks/results/coverage_fresh] [--data-from model]
+        [--results benchmarks/results/coverage_fresh] [--data-from model] [--noise-seeds 1]
 
 For every setup x noise sd x error model, ``inference.coverage.coverage_study`` runs every case
 (test materials of TEST.h5 x starting designs; resumable in ``--store``); its summary (with the
@@ -13,7 +13,9 @@ setups or halves of ``--materials`` in parallel processes instead), the GP varia
 mode (the default 4 x 1000 exact-variance posterior is too slow for hundreds of cases on 2 cores).
 ``--data-from model``: each case's truth drawn from the prior and its PC weights from the
 likelihood (``inference.coverage.run_case``), with a stated ``--noise-sd`` > 0: the posterior's
-own model, calibrated by construction; labels end in ``_model-data``.
+own model, calibrated by construction; labels end in ``_model-data``. ``--noise-seeds K``: K cases
+per material and starting design, each with its own noise draw (and with ``--data-from model`` its
+own truth and weights); labels end in ``_seedsK`` when K > 1.
 """
 
 from __future__ import annotations
@@ -56,7 +58,10 @@ def main() -> None:
         default="fe",
         help="the test materials' FE strains, or truths from the prior and weights from the posterior's own model",
     )
+    parser.add_argument("--noise-seeds", type=int, default=1, help="cases per material and design (noise draws)")
     args = parser.parse_args()
+    if args.noise_seeds < 1:
+        parser.error(f"--noise-seeds must be >= 1, got {args.noise_seeds}")
     if args.data_from == "model" and min(args.noise_sd) <= 0:
         parser.error("--data-from model needs a stated --noise-sd > 0")
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
@@ -75,7 +80,8 @@ def main() -> None:
             for setup in args.setups:
                 count = "" if args.n == 3 or setup == "single" else str(args.n)
                 source = "_model-data" if args.data_from == "model" else ""
-                label = f"{setup}{count}_noise{sd:g}_error-{error}{source}"
+                seeds = f"_seeds{args.noise_seeds}" if args.noise_seeds > 1 else ""
+                label = f"{setup}{count}_noise{sd:g}_error-{error}{source}{seeds}"
                 summary = run_study(args, emulator, data, setup, settings, sd, label)
                 print(label, {n: (e.coverage_50, e.coverage_95) for n, e in summary.parameters.items()}, flush=True)
 
@@ -109,6 +115,7 @@ def run_study(args, emulator, data, setup: str, settings, sd: float, label: str)
         args.store / label,
         n=args.n,
         noise_sd=sd,
+        noise_seeds=args.noise_seeds,
         materials=args.materials,
         starts=args.starts,
         data_from=args.data_from,
