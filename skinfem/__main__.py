@@ -35,9 +35,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add_command(sub, "simulate", ROUTES["simulate"][1])
     _add_config(p)
-    units = {"mu": "MPa", "k1": "MPa", "k2": "-", "kappa": "-", "theta": "deg"}
+    meaning = {
+        "mu": "[MPa]",
+        "k1": "[MPa]",
+        "k2": "[-]",
+        "kappa": "[-], fibre dispersion in [0, 1/3]",
+        "theta": "[deg], fibre angle from the x (alpha11) axis towards y",
+    }
     for name in PARAM_NAMES:
-        p.add_argument(f"--{name}", type=float, required=True, help=f"skin {name} [{units[name]}]")
+        p.add_argument(f"--{name}", type=float, required=True, help=f"skin {name} {meaning[name]}")
     add_design(p, "the membrane design: eigen-strains along x and y", required=True)
     add_output(p, "output dataset (.h5)", replaces="--out and --fields")
     p.add_argument("--fields", type=Path, help="also write ParaView fields (.xdmf and its .h5; not the --out name)")

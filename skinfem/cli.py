@@ -72,7 +72,9 @@ def add_command(sub: argparse._SubParsersAction, name: str, help: str) -> argpar
 
 def add_design(parser: argparse.ArgumentParser, help: str, *, required: bool = False) -> None:
     """``--alpha A11 A22``: a membrane design's eigen-strains along x and y [-]."""
-    parser.add_argument("--alpha", type=float, nargs=2, required=required, metavar=("A11", "A22"), help=help)
+    parser.add_argument(
+        "--alpha", type=float, nargs=2, required=required, metavar=("A11", "A22"), help=f"{help} [-], e.g. 0.05 -0.05"
+    )
 
 
 def add_pca_scaling(parser: argparse.ArgumentParser) -> None:
