@@ -507,13 +507,14 @@ def main(argv: list[str] | None = None) -> int:
     from inference.observations import MeasurementError
     from skinfem.parallel import CollectiveError, abort_on_uncaught
 
-    abort_on_uncaught(f"skinid {command}")
+    prog = " ".join(["skinid", command, *filter(None, [getattr(args, "study", None), getattr(args, "action", None)])])
+    abort_on_uncaught(prog)
     try:
         COMMANDS[command](args)
     except CollectiveError as exc:  # raised on every rank: rank 0 says it once
-        return refuse(f"skinid {command}", exc, show=_rank() == 0)
+        return refuse(prog, exc, show=_rank() == 0)
     except (MeasurementError, ValueError, FileNotFoundError) as exc:
-        code = refuse(f"skinid {command}", exc)
+        code = refuse(prog, exc)
         _abort_other_ranks(code)
         return code
     return 0

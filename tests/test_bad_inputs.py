@@ -773,6 +773,18 @@ def test_bad_input_is_refused_in_one_line_before_computing(case, inputs, tmp_pat
     assert snapshot(tmp_path, inputs.folder) == before
 
 
+@pytest.mark.parametrize(
+    ("arguments", "prog"),
+    [
+        ("study noise --data {tmp}/none.h5 --designs 2", "skinid study noise"),
+        (f"measurement show {DIC} --t 0.5", "skinid measurement show"),
+    ],
+)
+def test_a_refusal_names_the_subcommand(arguments, prog, tmp_path, capsys):
+    code, err = run_here([*shlex.split(arguments.format(tmp=tmp_path)), "--out", str(tmp_path / "out.png")], capsys)
+    assert code == 2 and err.startswith(f"{prog}: error: "), err
+
+
 def test_a_load_fraction_out_of_range_is_refused_before_the_export_is_read(tmp_path, capsys):
     from skinfem.cli import main
 
