@@ -103,6 +103,16 @@
         --results benchmarks/results/paper_mesh_mixed_noise_cases/clean_20_materials
     python benchmarks/paper_mesh.py noise-weights --study out/paper_mixed_noise_latent_long \
         --cases s1 s5 s10 m1 m5 m10 l1 l5 l10 --results benchmarks/results/paper_mesh_mixed_noise_cases
+    # 11. step 10's study with the default error model (the parameter shift, `shift`): the same cases in
+    #     the same order, so with the same noise seeds
+    skinid study noise --data out/paper_mixed.h5 --designs 0 --gp-fraction 0.7 --restarts 0 --warmup 300 \
+        --draws 300 --materials 3,5,8,9,23,24,30,36,44,55 --lengths 5.0 1.0 0.1 --levels 0.01 0.1 0.05 \
+        --pca-scaling none --n-components 5 --out out/paper_mixed_noise_shift
+    python benchmarks/paper_mesh.py table --run "shift=out/paper_mixed_noise_shift" \
+        --run "on=benchmarks/results/paper_mesh_mixed_noise_cases/noise_paper_mesh_mixed_noise_cases" \
+        --results benchmarks/results/paper_mesh_mixed_shift
+    python benchmarks/paper_mesh.py coverage --study out/paper_mixed_noise_shift \
+        --results benchmarks/results/paper_mesh_mixed_shift
 
 The table gives, per noise case and parameter, the median width of the 95 % interval as a share
 of the prior range and the coverage of the truth over the test materials, with the sha256 of the
