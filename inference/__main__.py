@@ -474,7 +474,7 @@ def cmd_measurement(args) -> None:
 
     check_output(args.out, args.force)
     if args.t is not None and not 0 < args.t <= 1:  # before the file is read
-        raise ValueError(f"--t: the load fraction must be in (0, 1], got {args.t}")
+        raise ValueError(f"--t: the load fraction t = {args.t} must be in (0, 1]")
     settings = dic_settings(args)
     if args.action == "show":
         _measurement_show(args, settings)

@@ -735,7 +735,7 @@ CASES = {
     "import-alpha-nan": (f"{IMPORT.replace('0.05', 'nan')} " + str(DIC), "alpha must be two finite numbers", None),
     "import-t-beyond-one": (
         f"{IMPORT.replace('0.8', '1.5')} " + str(DIC),
-        "--t: the load fraction must be in (0, 1], got 1.5",
+        "--t: the load fraction t = 1.5 must be in (0, 1]",
         None,
     ),
     "show-t-without-alpha": (  # was ignored: the figure said nothing of t
@@ -790,7 +790,7 @@ def test_a_load_fraction_out_of_range_is_refused_before_the_export_is_read(tmp_p
 
     code = main(shlex.split(IMPORT.replace("0.8", "0").format(out=tmp_path / "m")) + [str(DIC)])
     out, err = capsys.readouterr()
-    assert code == 2 and "got 0.0" in err
+    assert code == 2 and "t = 0.0 must be in (0, 1]" in err
     assert out == ""  # no "read N rows of ..." line: the file was not read
 
 
