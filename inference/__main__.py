@@ -469,12 +469,12 @@ def _measurement_show(args, settings) -> None:
 
 def cmd_measurement(args) -> None:
     from inference.dic_import import assess_plausibility, save_measurement
-    from inference.observations import MeasurementError
+    from inference.observations import MeasurementError, load_fraction_problem
     from skinfem.outputs import check_output
 
     check_output(args.out, args.force)
-    if args.t is not None and not 0 < args.t <= 1:  # before the file is read
-        raise ValueError(f"--t: the load fraction t = {args.t} must be in (0, 1]")
+    if args.t is not None and (problem := load_fraction_problem(args.t)):  # before the file is read
+        raise ValueError(f"--t: the load fraction {problem}")
     settings = dic_settings(args)
     if args.action == "show":
         _measurement_show(args, settings)

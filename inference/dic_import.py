@@ -22,6 +22,7 @@ from inference.observations import (
     STRAIN_MEASURES,
     Measurement,
     MeasurementError,
+    load_fraction_problem,
     read_measurement,
     to_log_strain,
     write_measurement,
@@ -102,8 +103,8 @@ class DicField:
         alpha = np.asarray(alpha, dtype=float)
         if alpha.shape != (2,) or not np.all(np.isfinite(alpha)):
             raise MeasurementError(f"alpha must be two finite numbers (alpha11, alpha22), got {alpha}")
-        if not (math.isfinite(t) and 0 < t <= 1):
-            raise MeasurementError(f"t = {t} must be in (0, 1]")
+        if problem := load_fraction_problem(t):
+            raise MeasurementError(problem)
         return Measurement(self.path, alpha, float(t), self.xy, self.strain, None)
 
 

@@ -62,7 +62,7 @@ import pyro.distributions as dist
 import torch
 from scipy.stats import invgamma
 
-from inference.observations import Observation
+from inference.observations import Observation, load_fraction_problem
 from skinfem.config import PARAM_NAMES
 from skinfem.io import COMPONENTS
 from surrogate.emulator import Emulator
@@ -99,8 +99,8 @@ def check_observation(emulator: Emulator, o: Observation) -> None:
             sd that is not positive (a zero sd makes the likelihood's noise covariance singular).
     """
     where = f"{o.source or 'observation'} (alpha11 = {o.alpha[0]:g}, alpha22 = {o.alpha[1]:g}, t = {o.t:g})"
-    if not 0 < o.t <= 1:
-        raise ValueError(f"{where}: the load fraction t must be in (0, 1]")
+    if problem := load_fraction_problem(o.t):
+        raise ValueError(f"{where}: the load fraction {problem}")
     lower, upper = emulator.lower[5:], emulator.upper[5:]
     slack = 1e-9 * (upper - lower)
     for k, name in enumerate(("alpha11", "alpha22")):

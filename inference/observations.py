@@ -39,6 +39,13 @@ class MeasurementError(ValueError):
     """A measurement file is malformed; the message names the file, line and problem."""
 
 
+def load_fraction_problem(t: float) -> str | None:
+    """Why ``t`` is not a load fraction (the share of the design's eigen-strain applied, in (0, 1]), or None."""
+    if np.isfinite(t) and 0 < t <= 1:
+        return None
+    return f"t = {t} must be in (0, 1]"
+
+
 @dataclass
 class Observation:
     """One strain field on the skin cells for one membrane design and load fraction.
@@ -193,8 +200,8 @@ def _read_header(lines: list[str], fail) -> tuple[np.ndarray, float, str, int]:
         Design(*alpha)
     except ValueError as exc:
         fail(lineno, f"bad design in the header: {exc}")
-    if not 0 < t <= 1:
-        fail(lineno, f"t = {t} must be in (0, 1]")
+    if problem := load_fraction_problem(t):
+        fail(lineno, problem)
     measure = meta.get("strain", "log")
     if measure not in STRAIN_MEASURES:
         fail(lineno, f"unknown strain measure '{measure}' (use one of {', '.join(STRAIN_MEASURES)})")

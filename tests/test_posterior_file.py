@@ -243,6 +243,14 @@ def test_a_zero_stated_noise_sd_is_refused(capsys, emulator, emulator_dir, tmp_p
         ObservedWeights.project(emulator, [observation])
 
 
+@pytest.mark.parametrize("t", [0.0, 1.5, float("nan")])
+def test_an_api_observation_outside_the_load_fraction_range_is_refused(emulator, t):
+    strain = np.zeros((len(emulator.xy), 3))
+    observation = Observation(np.array([0.05, 0.0]), t, strain, np.ones(len(strain), bool), source="api")
+    with pytest.raises(ValueError, match=rf"api \(.*\): the load fraction t = {t} must be in \(0, 1\]"):
+        ObservedWeights.project(emulator, [observation])
+
+
 def test_a_non_positive_noise_scale_is_refused(emulator, dataset):
     observed = ObservedWeights.project(emulator, from_dataset(dataset, 10, designs=[0]))
     with pytest.raises(ValueError, match="noise_scale .* must be > 0, got 0"):
