@@ -12,6 +12,7 @@ import numpy as np
 
 from inference.cli_inputs import (
     check_indices,
+    check_input_paths,
     check_same_mesh,
     check_sampler,
     check_strain_scale,
@@ -509,6 +510,10 @@ def main(argv: list[str] | None = None) -> int:
 
     prog = " ".join(["skinid", command, *filter(None, [getattr(args, "study", None), getattr(args, "action", None)])])
     abort_on_uncaught(prog)
+    try:
+        check_input_paths(args)
+    except FileNotFoundError as exc:  # the same on every rank: rank 0 says it once
+        return refuse(prog, exc, show=_rank() == 0)
     try:
         COMMANDS[command](args)
     except CollectiveError as exc:  # raised on every rank: rank 0 says it once

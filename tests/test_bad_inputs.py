@@ -30,6 +30,7 @@ import os
 import shlex
 import shutil
 import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -509,7 +510,7 @@ CASES = {
     # -- emulators
     "emulator-missing": (
         "infer --emulator {tmp}/none --data {data} --material 0 --out {out}",
-        "is not an emulator directory (no meta.json)",
+        "emulator directory '{tmp}/none' does not exist",
         None,
     ),
     "emulator-truncated-gp": (  # was BadZipFile
@@ -796,7 +797,8 @@ def test_a_load_fraction_out_of_range_is_refused_before_the_export_is_read(tmp_p
 
 # ---------------------------------------------------------------- outputs
 # An existing output is refused before any computing unless --force (or --resume) is given, and so
-# is an output whose folder cannot be written; the inputs need not exist (they are read later).
+# is an output whose folder cannot be written; the inputs must exist (paths are checked first) but
+# are read later, so empty stand-ins do.
 
 OUTPUTS = {  # command -> (its arguments before --out, the output's name)
     "simulate": (f"{SIMULATE} --theta 30", "run.h5"),
@@ -814,8 +816,16 @@ OUTPUTS = {  # command -> (its arguments before --out, the output's name)
 }
 
 
+def stand_in_inputs(folder: Path) -> None:
+    """Empty files and a folder named as the inputs of :data:`OUTPUTS` (where no output is)."""
+    for name in ("data.h5", "m.csv"):
+        if not (folder / name).exists():
+            (folder / name).write_bytes(b"")
+    (folder / "emu").mkdir(exist_ok=True)
+
+
 def run_output_case(arguments: str, out: Path, tmp_path: Path, capsys, monkeypatch) -> tuple[int, str]:
-    """``skinid arguments --out out`` run in ``tmp_path`` (where the relative inputs would be)."""
+    """``skinid arguments --out out`` run in ``tmp_path`` (where the relative inputs are)."""
     monkeypatch.chdir(tmp_path)
     return run_here([*shlex.split(arguments), "--out", str(out)], capsys)
 
@@ -826,6 +836,7 @@ def test_an_existing_output_is_refused(command, tmp_path, capsys, monkeypatch):
     arguments, name = OUTPUTS[command]
     out = tmp_path / name
     old_output(out)
+    stand_in_inputs(tmp_path)
     before = snapshot(tmp_path)
     code, err = run_output_case(arguments, out, tmp_path, capsys, monkeypatch)
     assert_refused(code, err, f"error: {out} exists; pass --force to replace it")
@@ -835,6 +846,7 @@ def test_an_existing_output_is_refused(command, tmp_path, capsys, monkeypatch):
 @pytest.mark.parametrize("command", ["simulate", "sweep", "surrogate fit", "infer", "noise"])
 def test_an_output_in_a_file_is_refused(command, tmp_path, capsys, monkeypatch):
     arguments, name = OUTPUTS[command]
+    stand_in_inputs(tmp_path)
     (tmp_path / "file").write_bytes(OLD_BYTES)
     before = snapshot(tmp_path)
     code, err = run_output_case(arguments, tmp_path / "file" / name, tmp_path, capsys, monkeypatch)
@@ -846,6 +858,7 @@ def test_an_output_in_a_file_is_refused(command, tmp_path, capsys, monkeypatch):
 @pytest.mark.parametrize("command", ["simulate", "sweep", "surrogate fit", "study noise", "measurement import"])
 def test_an_unwritable_folder_is_refused(command, tmp_path, capsys, monkeypatch):
     arguments, name = OUTPUTS[command]
+    stand_in_inputs(tmp_path)
     folder = tmp_path / "read_only"
     folder.mkdir(mode=0o500)
     try:
@@ -859,9 +872,11 @@ def test_an_unwritable_folder_is_refused(command, tmp_path, capsys, monkeypatch)
 @pytest.mark.parametrize("command", ["sweep", "study test-set", "check"])
 def test_force_and_resume_exclude_each_other(command, tmp_path, capsys, monkeypatch):
     arguments, name = OUTPUTS[command]
+    stand_in_inputs(tmp_path)
+    before = snapshot(tmp_path)
     code, err = run_output_case(f"{arguments} --force --resume", tmp_path / name, tmp_path, capsys, monkeypatch)
     assert_refused(code, err, "--resume completes an existing output and --force replaces it")
-    assert list(tmp_path.iterdir()) == []
+    assert snapshot(tmp_path) == before
 
 
 @pytest.mark.parametrize(
@@ -961,3 +976,30 @@ def test_a_bad_mesh_ends_every_rank_at_once_with_one_line(case, tmp_path):
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and expected in lines[0], res.stderr[-2000:]
     assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        ("infer --emulator {tmp}/none --measurement {tmp}/m.csv --out {tmp}/p", "emulator directory '{tmp}/none'"),
+        ("check --config small --measurement {tmp}/none.csv --out {tmp}/c", "measurement file '{tmp}/none.csv'"),
+        ("study noise --data {tmp}/none.h5 --designs 0 --out {tmp}/s", "dataset '{tmp}/none.h5'"),
+    ],
+)
+def test_a_missing_input_is_refused_before_torch_is_imported(arguments, message, tmp_path):
+    """The inference commands import torch and Pyro (seconds); a mistyped path is refused first."""
+    (tmp_path / "m.csv").write_text("")
+    argv = shlex.split(arguments.format(tmp=tmp_path))
+    script = (
+        "import sys\nfrom skinfem.cli import main\n"
+        f"code = main({argv!r})\nassert 'torch' not in sys.modules, 'torch imported'\nsys.exit(code)"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=skinid_env())
+    assert_refused(res.returncode, res.stderr, f"{message.format(tmp=tmp_path)} does not exist")
+
+
+@pytest.mark.mpi
+@pytest.mark.skipif(MPIRUN is None, reason="needs mpirun")
+def test_a_missing_input_under_mpi_is_one_line(tmp_path):
+    res = skinid("check", "--config", "small", "--measurement", tmp_path / "none.csv", "--out", tmp_path / "c", ranks=2)
+    assert_refused(res.returncode, res.stderr, f"measurement file '{tmp_path}/none.csv' does not exist")
