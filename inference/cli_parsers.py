@@ -192,7 +192,7 @@ def _study_outputs(
 
 
 def _study_parser(parser: argparse.ArgumentParser) -> None:
-    """``skinid study test-set|setups|noise|coverage``: many posteriors.
+    """``skinid study test-set|setups|coverage|noise``: many posteriors.
 
     Declarative, longer than a screen: one block of options per study.
     """

@@ -24,7 +24,7 @@ ROUTES: dict[str, tuple[str, str]] = {
     "surrogate": ("surrogate.__main__", "fit | validate the PCA + GP emulator"),
     "infer": ("inference.__main__", "NUTS posterior of the skin parameters"),
     "noise": ("inference.__main__", "add spatially correlated noise to a dataset"),
-    "study": ("inference.__main__", "test-set | setups | noise | coverage: many posteriors, accuracy and calibration"),
+    "study": ("inference.__main__", "test-set | setups | coverage | noise: many posteriors, accuracy and calibration"),
     "check": ("inference.__main__", "model criticism: residuals, where the model fails, the missing effect"),
     "measurement": ("inference.__main__", "import | show DIC exports (VIC, DaVis, DICe, tables) as measurements"),
 }
