@@ -65,6 +65,8 @@ def emulator_error_of(settings: SamplerSettings) -> str:
     """The EMULATOR_ERRORS choice that ``settings`` hold (the inverse of :func:`emulator_error_flags`)."""
     if not settings.emulator_error:
         return "off"
+    if settings.emulator_scale and settings.emulator_shift:
+        return "shift-scaled"  # benchmarks/coverage.py's diagnostic
     return "scaled" if settings.emulator_scale else "shift" if settings.emulator_shift else "on"
 
 

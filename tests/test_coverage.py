@@ -61,6 +61,11 @@ def test_the_error_model_named_on_a_study_is_the_one_its_settings_hold(choice):
     assert emulator_error_of(SamplerSettings(**emulator_error_flags(choice))) == choice
 
 
+def test_the_scale_on_the_shift_is_named_as_both():  # benchmarks/coverage.py's diagnostic
+    both = SamplerSettings(emulator_error=True, emulator_scale=True, emulator_shift=True)
+    assert emulator_error_of(both) == "shift-scaled"
+
+
 def test_the_default_error_model_is_the_parameter_shift_where_the_emulator_fitted_one(small_emulator, tmp_path):
     """The command line's '--emulator-error auto': the shift for an emulator that fitted it (and
     for the emulators a study fits itself), the per-weight error for one fitted before it."""
