@@ -1,8 +1,9 @@
 """Coverage of the posterior intervals on held-out materials, per observation setup and noise.
 
     python benchmarks/coverage.py --emulator EMU --data TEST.h5 [--setups single frames membranes]
-        [--noise-sd 0 0.002] [--emulator-error on scaled shift off shift-scaled] [--n 3] [--store out/coverage] [--starts 1]
-        [--results benchmarks/results/coverage_fresh] [--data-from model] [--noise-seeds 1]
+        [--noise-sd 0 0.002] [--emulator-error on scaled shift off shift-scaled] [--n 3]
+        [--store out/coverage] [--starts 1] [--results benchmarks/results/coverage_fresh]
+        [--data-from model] [--noise-seeds 1]
 
 For every setup x noise sd x error model, ``inference.coverage.coverage_study`` runs every case
 (test materials of TEST.h5 x starting designs; resumable in ``--store``); its summary (with the
