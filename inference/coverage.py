@@ -60,7 +60,9 @@ class CoverageCase:
 @dataclass(frozen=True)
 class CaseResult:
     """Per parameter (mu, k1, k2, kappa, theta): the truth's rank among RANK_DRAWS draws and
-    whether the central 50 % / 95 % intervals hold it."""
+    whether the central 50 % / 95 % intervals hold it; the truth and those thinned draws (theta
+    in degrees) are kept, so that where a posterior misses can be studied (empty in case files
+    written before they were)."""
 
     rank: tuple[int, ...]
     covered_50: tuple[bool, ...]
@@ -68,6 +70,8 @@ class CaseResult:
     interval_share_95: tuple[float, ...]  # 95 % interval width / prior range
     divergences: int
     divergences_before_resampling: int | None = None  # of the first run, when it was run again
+    truth: tuple[float, ...] = ()
+    thinned_draws: tuple[tuple[float, ...], ...] = ()  # (RANK_DRAWS, 5): the draws the truth is ranked among
 
 
 def cases_of(
@@ -159,6 +163,8 @@ def case_result(
         interval_share_95=tuple(float(v) for v in (hi95 - lo95) / np.ptp(bounds, axis=1)),
         divergences=divergences,
         divergences_before_resampling=before_resampling,
+        truth=tuple(float(v) for v in truth),
+        thinned_draws=tuple(tuple(float(v) for v in row) for row in thinned),
     )
 
 

@@ -2,14 +2,14 @@
 and a resumable run on the small emulator's held-out materials."""
 
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
 import torch
 
 from inference import coverage
-from inference.coverage import RANK_DRAWS, CaseResult, cases_of, coverage_study, noisy, summarise
+from inference.coverage import RANK_DRAWS, CaseResult, case_result, cases_of, coverage_study, noisy, summarise
 from inference.model import ObservedWeights, draw_from_model
 from inference.observations import from_dataset
 from inference.studies import (
@@ -168,3 +168,19 @@ def test_data_from_the_model_need_a_stated_noise(small_emulator, data, tmp_path)
         coverage_study(Emulator.load(small_emulator), data, "single", SamplerSettings(), tmp_path, data_from="model")
     with pytest.raises(ValueError, match="data_from must be one of"):
         coverage_study(Emulator.load(small_emulator), data, "single", SamplerSettings(), tmp_path, data_from="dic")
+
+
+def test_a_case_keeps_its_truth_and_the_draws_it_was_ranked_among():
+    """The rank is recomputed from the kept draws and truth; a case file written before they
+    were kept still loads."""
+    draws = np.random.default_rng(0).normal(size=(4000, 5)) * [1e-4, 1e-3, 1.0, 0.01, 5.0] + [1e-3, 0.02, 10, 0.2, 30]
+    truth = np.array([1.05e-3, 0.019, 10.5, 0.2, 36.0])
+    bounds = np.array([[5e-4, 2e-3], [0.0, 0.05], [1, 20], [0, 1 / 3], [0, 90]])
+    result = case_result(draws, truth, bounds, 0)
+    kept = np.array(result.thinned_draws)
+    assert kept.shape == (RANK_DRAWS, 5) and np.array_equal(result.truth, truth)
+    assert tuple(np.sum(kept < truth, axis=0)) == result.rank
+    again = CaseResult(**json.loads(json.dumps(asdict(result))))
+    assert np.array_equal(again.thinned_draws, result.thinned_draws)
+    older = {k: v for k, v in asdict(result).items() if k not in ("truth", "thinned_draws")}
+    assert CaseResult(**older).truth == ()
