@@ -172,6 +172,7 @@ def _coverage(args, emulator, data) -> None:
         print(
             f"{name:>6}: 95 % intervals cover {e.coverage_95:.2f} (sd {e.binomial_sd_95:.2f}), "
             f"50 % intervals {e.coverage_50:.2f} (sd {e.binomial_sd_50:.2f})"
+            + ("" if e.rms_z is None else f", truth {e.rms_z:.2f} posterior sd from the mean (RMS; 1 if calibrated)")
         )
     print(f"{res.n_cases} cases of {res.n_materials} materials (sd over materials); wrote {args.out}/coverage.json")
 

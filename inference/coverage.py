@@ -73,6 +73,14 @@ class CaseResult:
     truth: tuple[float, ...] = ()
     thinned_draws: tuple[tuple[float, ...], ...] = ()  # (RANK_DRAWS, 5): the draws the truth is ranked among
 
+    def z_scores(self) -> np.ndarray | None:
+        """(5,) the truth's distance from the posterior mean in posterior sd (thinned draws);
+        None for a case file without them."""
+        if not self.thinned_draws:
+            return None
+        draws = np.asarray(self.thinned_draws)
+        return (np.asarray(self.truth) - draws.mean(axis=0)) / draws.std(axis=0)
+
 
 def cases_of(
     data: StrainDataset,
@@ -220,6 +228,9 @@ class ParameterCoverage:
     binomial_sd_95: float
     median_interval_share_95: float  # median 95 % interval width / prior range
     meets_goal: bool  # coverage_95 in GOAL_95 and coverage_50 in GOAL_50
+    # RMS over cases of the truth's z-score (CaseResult.z_scores): 1 when calibrated (also for a
+    # posterior equal to the prior), < 1 intervals too wide, > 1 too narrow; None without kept draws
+    rms_z: float | None = None
 
 
 @dataclass(frozen=True)
@@ -262,6 +273,8 @@ def summarise(
 ) -> CoverageSummary:
     """Coverage per parameter with its sd over ``materials`` (one per result), and whether it meets the goal."""
     n_cases, groups = len(results), np.asarray(materials)
+    z = [r.z_scores() for r in results]
+    rms_z = np.sqrt(np.mean(np.square(z), axis=0)) if z and all(v is not None for v in z) else None
     parameters = {}
     for k, name in enumerate(LABELS):
         hits_50 = np.array([r.covered_50[k] for r in results], float)
@@ -274,6 +287,7 @@ def summarise(
             clustered_sd(hits_95, groups),
             float(np.median([r.interval_share_95[k] for r in results])),
             bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]),
+            None if rms_z is None else float(rms_z[k]),
         )
     divergences = int(sum(r.divergences for r in results))
     first = [r.divergences_before_resampling for r in results if r.divergences_before_resampling is not None]

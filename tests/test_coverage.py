@@ -184,3 +184,20 @@ def test_a_case_keeps_its_truth_and_the_draws_it_was_ranked_among():
     assert np.array_equal(again.thinned_draws, result.thinned_draws)
     older = {k: v for k, v in asdict(result).items() if k not in ("truth", "thinned_draws")}
     assert CaseResult(**older).truth == ()
+
+
+def test_rms_z_tells_too_wide_from_calibrated_intervals():
+    """Truths drawn from N(0, 1) posteriors: RMS z near 1; the same truths with posteriors twice
+    as wide: near 0.5, though their 95 % intervals still cover."""
+    rng = np.random.default_rng(1)
+    bounds = np.array([[-10.0, 10.0]] * 5)
+    truths = rng.normal(size=(400, 5))
+    for width, expected in ((1.0, 1.0), (2.0, 0.5)):
+        results = [case_result(width * rng.normal(size=(1000, 5)), t, bounds, 0) for t in truths]
+        summary = summarise(results, "single", 3, 0.0, SamplerSettings(), materials=list(range(400)))
+        rms = np.array([p.rms_z for p in summary.parameters.values()])
+        assert np.allclose(rms, expected, rtol=0.12)  # 400 cases, mean and sd from 99 thinned draws
+        assert all(p.coverage_95 >= 0.93 for p in summary.parameters.values())
+    older = [replace(r, thinned_draws=()) for r in results]
+    without = summarise(older, "single", 3, 0.0, SamplerSettings(), materials=list(range(400)))
+    assert without.parameters["mu"].rms_z is None
