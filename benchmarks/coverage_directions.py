@@ -1,0 +1,68 @@
+"""Are coverage posteriors calibrated along their own principal directions? From kept case files.
+
+    python benchmarks/coverage_directions.py --store out/cov_draws/<study> [...] --bounds EMU [--results FILE]
+
+Reads the case files of ``skinid study coverage`` folders (each keeps the truth and the 99
+thinned draws it was ranked among). Per case, in the emulator's unit box: the draws' covariance,
+its eigenvectors (narrowest first) and the truth's distance from the posterior mean along each,
+in that direction's sd. Calibrated, each has variance 1 over the cases, whichever direction the
+data constrain and whichever the prior alone bounds; a narrow direction with variance far above 1
+is an over-confident one. Also the mean |theta loading| and sd of each direction. Writes
+benchmarks/results/coverage_directions.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def direction_scores(draws: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(z (5,), sd (5,), eigenvectors (5, 5) as columns) of one case, narrowest direction first;
+    ``draws`` (n, 5) and ``truth`` (5,) in the unit box."""
+    values, vectors = np.linalg.eigh(np.cov(draws.T))
+    return vectors.T @ (truth - draws.mean(axis=0)) / np.sqrt(values), np.sqrt(values), vectors
+
+
+def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
+    """Variance of the truth's z per principal direction over the kept cases of one study folder."""
+    scores = []
+    for path in sorted((folder / "cases").glob("*.json")):
+        case = json.loads(path.read_text())
+        if not case.get("thinned_draws"):
+            continue
+        unit = (np.array(case["thinned_draws"]) - lower) / (upper - lower)
+        scores.append(direction_scores(unit, (np.array(case["truth"]) - lower) / (upper - lower)))
+    if not scores:
+        raise SystemExit(f"coverage_directions.py: {folder} has no case files with kept draws")
+    z, sd, vectors = (np.array(s) for s in zip(*scores))
+    return {
+        "cases": len(scores),
+        "truth_z_variance": np.mean(z**2, axis=0).round(3).tolist(),
+        "mean_sd_unit_box": sd.mean(axis=0).round(4).tolist(),
+        "mean_abs_theta_loading": np.abs(vectors[:, 4, :]).mean(axis=0).round(3).tolist(),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--store", type=Path, nargs="+", required=True, help="study folders with cases/")
+    parser.add_argument("--bounds", type=Path, required=True, help="emulator folder (its meta.json box)")
+    parser.add_argument("--results", type=Path, default=HERE / "results" / "coverage_directions.json")
+    args = parser.parse_args()
+    meta = json.loads((args.bounds / "meta.json").read_text())
+    lower, upper = np.array(meta["lower"][:5]), np.array(meta["upper"][:5])
+    results = {"order": "narrowest direction first", "studies": {}}
+    for folder in args.store:
+        results["studies"][str(folder)] = summarise(folder, lower, upper)
+    args.results.write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
