@@ -7,8 +7,9 @@ thinned draws it was ranked among). Per case, in the emulator's unit box: the dr
 its eigenvectors (narrowest first) and the truth's distance from the posterior mean along each,
 in that direction's sd. Calibrated, each has variance 1 over the cases, whichever direction the
 data constrain and whichever the prior alone bounds; a narrow direction with variance far above 1
-is an over-confident one. Also the mean |theta loading| and sd of each direction. Writes
-benchmarks/results/coverage_directions.json.
+is an over-confident one. Also the mean |theta loading| and sd of each direction, and theta's own
+z^2 = (sum_k w_k z_k)^2 (w_k = V_theta,k sd_k / sd_theta) split into the directions' parts
+sum_k w_k^2 z_k^2 and the cross terms. Writes benchmarks/results/coverage_directions.json.
 """
 
 from __future__ import annotations
@@ -41,11 +42,17 @@ def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
     if not scores:
         raise SystemExit(f"coverage_directions.py: {folder} has no case files with kept draws")
     z, sd, vectors = (np.array(s) for s in zip(*scores))
+    weights = vectors[:, 4, :] * sd / np.sqrt(np.sum((vectors[:, 4, :] * sd) ** 2, axis=1, keepdims=True))
+    theta_z2 = np.sum(weights * z, axis=1) ** 2  # theta's own z^2 = (sum_k w_k z_k)^2
+    parts = np.sum(weights**2 * z**2, axis=1)
     return {
         "cases": len(scores),
         "truth_z_variance": np.mean(z**2, axis=0).round(3).tolist(),
         "mean_sd_unit_box": sd.mean(axis=0).round(4).tolist(),
         "mean_abs_theta_loading": np.abs(vectors[:, 4, :]).mean(axis=0).round(3).tolist(),
+        "theta_mean_z2": round(float(theta_z2.mean()), 3),
+        "theta_mean_z2_per_direction_parts": round(float(parts.mean()), 3),
+        "theta_mean_z2_cross_terms": round(float((theta_z2 - parts).mean()), 3),
     }
 
 
