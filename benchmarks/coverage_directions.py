@@ -7,7 +7,8 @@ thinned draws it was ranked among). Per case, in the emulator's unit box: the dr
 its eigenvectors (narrowest first) and the truth's distance from the posterior mean along each,
 in that direction's sd. Calibrated, each has variance 1 over the cases, whichever direction the
 data constrain and whichever the prior alone bounds; a narrow direction with variance far above 1
-is an over-confident one. Also the mean |theta loading| and sd of each direction, and theta's own
+is an over-confident one. Also the mean |theta loading| and sd of each direction, the RMS error of the posterior mean
+per parameter (unit box), and theta's own
 z^2 = (sum_k w_k z_k)^2 (w_k = V_theta,k sd_k / sd_theta) split into the directions' parts
 sum_k w_k^2 z_k^2 and the cross terms. Writes benchmarks/results/coverage_directions.json.
 """
@@ -32,13 +33,15 @@ def direction_scores(draws: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, 
 
 def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
     """Variance of the truth's z per principal direction over the kept cases of one study folder."""
-    scores = []
+    scores, errors = [], []
     for path in sorted((folder / "cases").glob("*.json")):
         case = json.loads(path.read_text())
         if not case.get("thinned_draws"):
             continue
         unit = (np.array(case["thinned_draws"]) - lower) / (upper - lower)
-        scores.append(direction_scores(unit, (np.array(case["truth"]) - lower) / (upper - lower)))
+        truth = (np.array(case["truth"]) - lower) / (upper - lower)
+        scores.append(direction_scores(unit, truth))
+        errors.append(unit.mean(axis=0) - truth)
     if not scores:
         raise SystemExit(f"coverage_directions.py: {folder} has no case files with kept draws")
     z, sd, vectors = (np.array(s) for s in zip(*scores))
@@ -47,6 +50,7 @@ def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
     parts = np.sum(weights**2 * z**2, axis=1)
     return {
         "cases": len(scores),
+        "rms_error_of_mean_unit_box": np.sqrt(np.mean(np.square(errors), axis=0)).round(4).tolist(),  # per parameter
         "truth_z_variance": np.mean(z**2, axis=0).round(3).tolist(),
         "mean_sd_unit_box": sd.mean(axis=0).round(4).tolist(),
         "mean_abs_theta_loading": np.abs(vectors[:, 4, :]).mean(axis=0).round(3).tolist(),
