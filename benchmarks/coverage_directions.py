@@ -10,7 +10,8 @@ data constrain and whichever the prior alone bounds; a narrow direction with var
 is an over-confident one. Also the mean |theta loading| and sd of each direction, the RMS error of the posterior mean
 per parameter (unit box), and theta's own
 z^2 = (sum_k w_k z_k)^2 (w_k = V_theta,k sd_k / sd_theta) split into the directions' parts
-sum_k w_k^2 z_k^2 and the cross terms. Writes benchmarks/results/coverage_directions.json.
+sum_k w_k^2 z_k^2 and the cross terms; θ's rms_z and central-half coverage by band of the true
+θ (0-20, 20-70, 70-90 deg). Writes benchmarks/results/coverage_directions.json.
 """
 
 from __future__ import annotations
@@ -60,6 +61,25 @@ def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
     }
 
 
+def theta_bands(folder: Path, edges=(0.0, 20.0, 70.0, 90.0)) -> dict:
+    """θ's rms_z and central-half coverage over the cases whose true θ [deg] lies in each band."""
+    cases = [json.loads(p.read_text()) for p in sorted((folder / "cases").glob("*.json"))]
+    cases = [c for c in cases if c.get("thinned_draws")]
+    truth = np.array([c["truth"][4] for c in cases])
+    theta = [np.array(c["thinned_draws"])[:, 4] for c in cases]
+    z = (truth - np.array([d.mean() for d in theta])) / np.array([d.std() for d in theta])
+    covered = np.array([c["covered_50"][4] for c in cases], float)
+    bands = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (truth >= lo) & (truth < hi)
+        bands[f"{lo:g}-{hi:g} deg"] = {
+            "cases": int(inside.sum()),
+            "rms_z": round(float(np.sqrt(np.mean(z[inside] ** 2))), 3),
+            "coverage_50": round(float(covered[inside].mean()), 3),
+        }
+    return bands
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--store", type=Path, nargs="+", required=True, help="study folders with cases/")
@@ -70,7 +90,7 @@ def main() -> None:
     lower, upper = np.array(meta["lower"][:5]), np.array(meta["upper"][:5])
     results = {"order": "narrowest direction first", "studies": {}}
     for folder in args.store:
-        results["studies"][str(folder)] = summarise(folder, lower, upper)
+        results["studies"][str(folder)] = {**summarise(folder, lower, upper), "theta_bands": theta_bands(folder)}
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 
