@@ -10,7 +10,8 @@ shift J C J^T and what it leaves). Along the signature j_k = d(mean)/d(parameter
 error a_k = j_k^T S^-1 e / sqrt(j_k^T S^-1 j_k) is a standard normal if S is right, so its variance
 over the materials is 1: above 1 the model understates the error that looks like a change of
 parameter k, below 1 it overstates it. Also e^T S^-1 e (chi^2 with as many degrees of freedom as
-weights). Writes benchmarks/results/signature_error.json.
+weights), and the variance along theta's signature by band of the true theta. Writes
+benchmarks/results/signature_error.json.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 
 HERE = Path(__file__).resolve().parent
+THETA_BANDS = ((0.0, 20.0), (20.0, 70.0), (70.0, 90.0))  # of the true theta [deg]
 MODELS = {"off": (False, False), "on": (True, False), "shift": (True, True)}  # (emulator_error, shift)
 
 
@@ -65,8 +67,13 @@ def main() -> None:
             posterior = SkinPosterior(emulator, observed, emulator_error=error_model, emulator_shift=shift)
             rows.append(signature_errors(posterior, torch.as_tensor(observed.truth)))
         along, quadratic = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+        theta = data.params[materials, 4]
         results[name] = {
             "variance_along_signature": np.mean(along**2, axis=0).round(3).tolist(),
+            "variance_along_theta_by_band": {
+                f"{lo:g}-{hi:g} deg": round(float(np.mean(along[(theta >= lo) & (theta < hi), 4] ** 2)), 3)
+                for lo, hi in THETA_BANDS
+            },
             "mean_quadratic_form": round(float(quadratic.mean()), 3),
             "median_quadratic_form": round(float(np.median(quadratic)), 3),
             "weights": int(posterior.weights.numel()),
