@@ -74,12 +74,13 @@ class CaseResult:
     thinned_draws: tuple[tuple[float, ...], ...] = ()  # (RANK_DRAWS, 5): the draws the truth is ranked among
 
     def z_scores(self) -> np.ndarray | None:
-        """(5,) the truth's distance from the posterior mean in posterior sd (thinned draws);
-        None for a case file without them."""
+        """(5,) the truth's distance from the posterior mean in posterior sd (thinned draws), NaN
+        where the draws do not vary; None for a case file without them."""
         if not self.thinned_draws:
             return None
         draws = np.asarray(self.thinned_draws)
-        return (np.asarray(self.truth) - draws.mean(axis=0)) / draws.std(axis=0)
+        sd = draws.std(axis=0)
+        return np.where(sd > 0, (np.asarray(self.truth) - draws.mean(axis=0)) / np.where(sd > 0, sd, 1.0), np.nan)
 
 
 def cases_of(
@@ -229,7 +230,8 @@ class ParameterCoverage:
     median_interval_share_95: float  # median 95 % interval width / prior range
     meets_goal: bool  # coverage_95 in GOAL_95 and coverage_50 in GOAL_50
     # RMS over cases of the truth's z-score (CaseResult.z_scores): 1 when calibrated (also for a
-    # posterior equal to the prior), < 1 intervals too wide, > 1 too narrow; None without kept draws
+    # posterior equal to the prior), < 1 intervals too wide, > 1 too narrow; None without kept
+    # draws (cases whose draws of the parameter do not vary are left out)
     rms_z: float | None = None
 
 
@@ -262,6 +264,19 @@ def clustered_sd(hits: np.ndarray, materials: np.ndarray) -> float:
     return float(np.sqrt(np.sum(per_material**2)) / len(hits))
 
 
+def rms_z_scores(results: list[CaseResult]) -> list[float | None]:
+    """Per parameter, the RMS of the truth's z-scores over the cases whose draws vary; None for
+    all when a case has no kept draws, or for a parameter whose draws vary in none."""
+    scores = [r.z_scores() for r in results]
+    if not scores or any(z is None for z in scores):
+        return [None] * len(LABELS)
+    z = np.array(scores)
+    return [
+        float(np.sqrt(np.mean(column[np.isfinite(column)] ** 2))) if np.isfinite(column).any() else None
+        for column in z.T
+    ]
+
+
 def summarise(
     results: list[CaseResult],
     setup: str,
@@ -273,8 +288,7 @@ def summarise(
 ) -> CoverageSummary:
     """Coverage per parameter with its sd over ``materials`` (one per result), and whether it meets the goal."""
     n_cases, groups = len(results), np.asarray(materials)
-    z = [r.z_scores() for r in results]
-    rms_z = np.sqrt(np.mean(np.square(z), axis=0)) if z and all(v is not None for v in z) else None
+    rms_z = rms_z_scores(results)
     parameters = {}
     for k, name in enumerate(LABELS):
         hits_50 = np.array([r.covered_50[k] for r in results], float)
@@ -287,7 +301,7 @@ def summarise(
             clustered_sd(hits_95, groups),
             float(np.median([r.interval_share_95[k] for r in results])),
             bool(GOAL_95[0] <= c95 <= GOAL_95[1] and GOAL_50[0] <= c50 <= GOAL_50[1]),
-            None if rms_z is None else float(rms_z[k]),
+            rms_z[k],
         )
     divergences = int(sum(r.divergences for r in results))
     first = [r.divergences_before_resampling for r in results if r.divergences_before_resampling is not None]

@@ -198,6 +198,10 @@ def test_rms_z_tells_too_wide_from_calibrated_intervals():
         rms = np.array([p.rms_z for p in summary.parameters.values()])
         assert np.allclose(rms, expected, rtol=0.12)  # 400 cases, mean and sd from 99 thinned draws
         assert all(p.coverage_95 >= 0.93 for p in summary.parameters.values())
+    pinned = [replace(r, thinned_draws=tuple((*row[:4], 30.0) for row in r.thinned_draws)) for r in results]
+    summary = summarise(pinned, "single", 3, 0.0, SamplerSettings(), materials=list(range(400)))
+    assert summary.parameters["theta"].rms_z is None  # draws that do not vary: no z, no NaN
+    assert summary.parameters["mu"].rms_z == pytest.approx(0.5, rel=0.12)
     older = [replace(r, thinned_draws=()) for r in results]
     without = summarise(older, "single", 3, 0.0, SamplerSettings(), materials=list(range(400)))
     assert without.parameters["mu"].rms_z is None
