@@ -32,19 +32,25 @@ def direction_scores(draws: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, 
     return vectors.T @ (truth - draws.mean(axis=0)) / np.sqrt(values), np.sqrt(values), vectors
 
 
-def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
-    """Variance of the truth's z per principal direction over the kept cases of one study folder."""
+def kept_cases(folder: Path) -> list:
+    """The :class:`inference.coverage.CaseResult` of every case file of ``folder`` that kept its draws."""
+    from inference.coverage import CaseResult
+
+    cases = [CaseResult(**json.loads(p.read_text())) for p in sorted((folder / "cases").glob("*.json"))]
+    cases = [c for c in cases if c.thinned_draws]
+    if not cases:
+        raise SystemExit(f"coverage_directions.py: {folder} has no case files with kept draws")
+    return cases
+
+
+def summarise(cases: list, lower: np.ndarray, upper: np.ndarray) -> dict:
+    """Variance of the truth's z per principal direction over the ``cases`` of one study folder."""
     scores, errors = [], []
-    for path in sorted((folder / "cases").glob("*.json")):
-        case = json.loads(path.read_text())
-        if not case.get("thinned_draws"):
-            continue
-        unit = (np.array(case["thinned_draws"]) - lower) / (upper - lower)
-        truth = (np.array(case["truth"]) - lower) / (upper - lower)
+    for case in cases:
+        unit = (np.array(case.thinned_draws) - lower) / (upper - lower)
+        truth = (np.array(case.truth) - lower) / (upper - lower)
         scores.append(direction_scores(unit, truth))
         errors.append(unit.mean(axis=0) - truth)
-    if not scores:
-        raise SystemExit(f"coverage_directions.py: {folder} has no case files with kept draws")
     z, sd, vectors = (np.array(s) for s in zip(*scores))
     weights = vectors[:, 4, :] * sd / np.sqrt(np.sum((vectors[:, 4, :] * sd) ** 2, axis=1, keepdims=True))
     theta_z2 = np.sum(weights * z, axis=1) ** 2  # theta's own z^2 = (sum_k w_k z_k)^2
@@ -61,14 +67,11 @@ def summarise(folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict:
     }
 
 
-def theta_bands(folder: Path, edges=(0.0, 20.0, 70.0, 90.0)) -> dict:
-    """θ's rms_z and central-half coverage over the cases whose true θ [deg] lies in each band."""
-    cases = [json.loads(p.read_text()) for p in sorted((folder / "cases").glob("*.json"))]
-    cases = [c for c in cases if c.get("thinned_draws")]
-    truth = np.array([c["truth"][4] for c in cases])
-    theta = [np.array(c["thinned_draws"])[:, 4] for c in cases]
-    z = (truth - np.array([d.mean() for d in theta])) / np.array([d.std() for d in theta])
-    covered = np.array([c["covered_50"][4] for c in cases], float)
+def theta_bands(cases: list, edges=(0.0, 20.0, 70.0, 90.0)) -> dict:
+    """θ's rms_z and central-half coverage over the ``cases`` whose true θ [deg] lies in each band."""
+    truth = np.array([c.truth[4] for c in cases])
+    z = np.array([c.z_scores()[4] for c in cases])
+    covered = np.array([c.covered_50[4] for c in cases], float)
     bands = {}
     for lo, hi in zip(edges[:-1], edges[1:]):
         inside = (truth >= lo) & (truth < hi)
@@ -90,7 +93,8 @@ def main() -> None:
     lower, upper = np.array(meta["lower"][:5]), np.array(meta["upper"][:5])
     results = {"order": "narrowest direction first", "studies": {}}
     for folder in args.store:
-        results["studies"][str(folder)] = {**summarise(folder, lower, upper), "theta_bands": theta_bands(folder)}
+        cases = kept_cases(folder)
+        results["studies"][str(folder)] = {**summarise(cases, lower, upper), "theta_bands": theta_bands(cases)}
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 
