@@ -105,21 +105,30 @@ class LinearisedFit:
         return self.delta / np.sqrt(np.diag(self.cov))
 
 
-def linearised_fit(posterior, truth) -> LinearisedFit:
-    """The shift of one case's estimate, whitened by the likelihood's covariance over every weight
-    (lambda = 1; the parameter shift's J C J^T included when the posterior carries it)."""
+def error_at_truth(posterior, truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The emulator's error e (n,), the mean's Jacobian in the raw parameters (n, 5) and the
+    likelihood's covariance over every weight (n, n) at the truth, noise-free, in the order (g, o)
+    (the parameter shift's J C J^T included when the posterior carries it)."""
     from inference.model import coupled_covariance
-    from surrogate.error_model import least_squares_shift
 
     factor = posterior.shift_factor(truth, differentiable=False)
     with torch.no_grad():
         mean, gp_cov = posterior.gp_moments(truth)
         blocks = posterior.model_covariance(gp_cov)
         cov = torch.block_diag(*blocks) if factor is None else coupled_covariance(blocks, factor, 1.0)
-        chol = torch.linalg.cholesky(cov).numpy()
     jac = torch.autograd.functional.jacobian(lambda p: posterior.gp_moments(p)[0], truth).numpy()  # (n_obs, G, 5)
-    error = (posterior.weights - mean).numpy().T.ravel()  # order (g, o), as the covariance
-    jw = np.linalg.solve(chol, jac.transpose(1, 0, 2).reshape(-1, 5))
+    error = (posterior.weights - mean).numpy().T.ravel()
+    return error, jac.transpose(1, 0, 2).reshape(-1, 5), cov.numpy()
+
+
+def linearised_fit(posterior, truth) -> LinearisedFit:
+    """The shift of one case's estimate, whitened by the likelihood's covariance over every weight
+    (lambda = 1; the parameter shift's J C J^T included when the posterior carries it)."""
+    from surrogate.error_model import least_squares_shift
+
+    error, jacobian, cov = error_at_truth(posterior, truth)
+    chol = np.linalg.cholesky(cov)
+    jw = np.linalg.solve(chol, jacobian)
     white = np.linalg.solve(chol, error)
     delta, _, absorbed = least_squares_shift(white, jw)
     return LinearisedFit(delta, np.linalg.inv(jw.T @ jw), (1 - absorbed) * float(white @ white), absorbed)

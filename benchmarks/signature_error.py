@@ -18,29 +18,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # material_scale, a sibling
 THETA_BANDS = ((0.0, 20.0), (20.0, 70.0), (70.0, 90.0))  # of the true theta [deg]
 MODELS = {"off": (False, False), "on": (True, False), "shift": (True, True)}  # (emulator_error, shift)
 
 
 def signature_errors(posterior, truth: torch.Tensor) -> tuple[np.ndarray, float]:
     """(a (5,), e^T S^-1 e) of one observed material at its truth (5,), noise-free."""
-    from inference.model import coupled_covariance
+    from material_scale import error_at_truth
 
-    sigma = torch.full((posterior.n_sigma,), 1e-8, dtype=torch.float64)
-    with torch.no_grad():
-        mean, blocks = posterior.moments(truth, sigma)
-        factor = posterior.shift_factor(truth, differentiable=False)
-        cov = torch.block_diag(*blocks) if factor is None else coupled_covariance(blocks, factor, 1.0)
-    jac = torch.autograd.functional.jacobian(lambda p: posterior.gp_moments(p)[0], truth)  # (n_obs, G, 5)
-    signature = jac.permute(1, 0, 2).reshape(-1, 5).numpy()  # order (g, o), as the covariance
-    error = (posterior.weights - mean).T.reshape(-1).numpy()
-    precision = np.linalg.inv(cov.numpy())
+    error, signature, cov = error_at_truth(posterior, truth)
+    precision = np.linalg.inv(cov)
     along = signature.T @ precision @ error / np.sqrt(np.einsum("ik,ij,jk->k", signature, precision, signature))
     return along, float(error @ precision @ error)
 
