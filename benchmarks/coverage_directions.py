@@ -1,6 +1,6 @@
 """Are coverage posteriors calibrated along their own principal directions? From kept case files.
 
-    python benchmarks/coverage_directions.py --store out/cov_draws/<study> [...] --bounds EMU [--results FILE]
+    python benchmarks/coverage_directions.py --store out/cov_draws/<study> [...] --bounds EMU [--results FILE] [--pool]
 
 Reads the case files of ``skinid study coverage`` folders (each keeps the truth and the 99
 thinned draws it was ranked among). Per case, in the emulator's unit box: the draws' covariance,
@@ -10,8 +10,11 @@ data constrain and whichever the prior alone bounds; a narrow direction with var
 is an over-confident one. Also the mean |theta loading| and sd of each direction, the RMS error of the posterior mean
 per parameter (unit box), and theta's own
 z^2 = (sum_k w_k z_k)^2 (w_k = V_theta,k sd_k / sd_theta) split into the directions' parts
-sum_k w_k^2 z_k^2 and the cross terms; θ's rms_z and central-half coverage by band of the true
-θ (0-20, 20-70, 70-90 deg). Writes benchmarks/results/coverage_directions.json.
+sum_k w_k^2 z_k^2 and the cross terms; by band of the true θ (0-20, 20-70, 70-90 deg) θ's
+rms_z and central-half coverage, and every parameter's RMS error of the mean against its mean
+posterior sd; by quartile of |sin 2θ| θ's error and sd in degrees. ``--pool``: the folders'
+cases as one study (halves run apart). Writes
+benchmarks/results/coverage_directions.json.
 """
 
 from __future__ import annotations
@@ -67,11 +70,16 @@ def summarise(cases: list, lower: np.ndarray, upper: np.ndarray) -> dict:
     }
 
 
-def theta_bands(cases: list, edges=(0.0, 20.0, 70.0, 90.0)) -> dict:
-    """θ's rms_z and central-half coverage over the ``cases`` whose true θ [deg] lies in each band."""
+def theta_bands(cases: list, lower: np.ndarray, upper: np.ndarray, edges=(0.0, 20.0, 70.0, 90.0)) -> dict:
+    """Over the ``cases`` whose true θ [deg] lies in each band: θ's rms_z and central-half
+    coverage, and per parameter the RMS error of the posterior mean and the mean posterior sd, in
+    the unit box (calibrated: equal)."""
     truth = np.array([c.truth[4] for c in cases])
     z = np.array([c.z_scores()[4] for c in cases])
     covered = np.array([c.covered_50[4] for c in cases], float)
+    unit = [(np.array(c.thinned_draws) - lower) / (upper - lower) for c in cases]
+    error = np.array([u.mean(axis=0) for u in unit]) - (np.array([c.truth for c in cases]) - lower) / (upper - lower)
+    sd = np.array([u.std(axis=0) for u in unit])
     bands = {}
     for lo, hi in zip(edges[:-1], edges[1:]):
         inside = (truth >= lo) & (truth < hi)
@@ -79,8 +87,35 @@ def theta_bands(cases: list, edges=(0.0, 20.0, 70.0, 90.0)) -> dict:
             "cases": int(inside.sum()),
             "rms_z": round(float(np.sqrt(np.mean(z[inside] ** 2))), 3),
             "coverage_50": round(float(covered[inside].mean()), 3),
+            "rms_error_of_mean_unit_box": np.sqrt(np.mean(error[inside] ** 2, axis=0)).round(4).tolist(),
+            "mean_sd_unit_box": sd[inside].mean(axis=0).round(4).tolist(),
         }
     return bands
+
+
+def theta_sensitivity_quartiles(cases: list) -> list[dict]:
+    """θ's error and width against |sin 2θ| of the true θ (the fibre term's sensitivity to θ: the
+    fibre invariant is C11 cos²θ + C22 sin²θ + C12 sin 2θ), over quartiles of the cases by it: the
+    RMS error of the posterior mean [deg], the mean posterior sd [deg], and the RMS of error x
+    |sin 2θ| (constant over the quartiles if θ's error is a fixed-size error of cos 2θ)."""
+    truth = np.array([c.truth[4] for c in cases])
+    draws = [np.array(c.thinned_draws)[:, 4] for c in cases]
+    error = np.array([d.mean() for d in draws]) - truth
+    sd = np.array([d.std() for d in draws])
+    sensitivity = np.abs(np.sin(np.radians(2 * truth)))
+    scaled = error * sensitivity
+    quartiles = []
+    for part in np.array_split(np.argsort(sensitivity), 4):
+        quartiles.append(
+            {
+                "abs_sin_2theta": [round(float(sensitivity[part].min()), 3), round(float(sensitivity[part].max()), 3)],
+                "cases": len(part),
+                "rms_error_deg": round(float(np.sqrt(np.mean(error[part] ** 2))), 2),
+                "mean_sd_deg": round(float(sd[part].mean()), 2),
+                "rms_error_times_abs_sin_2theta_deg": round(float(np.sqrt(np.mean(scaled[part] ** 2))), 2),
+            }
+        )
+    return quartiles
 
 
 def main() -> None:
@@ -88,13 +123,19 @@ def main() -> None:
     parser.add_argument("--store", type=Path, nargs="+", required=True, help="study folders with cases/")
     parser.add_argument("--bounds", type=Path, required=True, help="emulator folder (its meta.json box)")
     parser.add_argument("--results", type=Path, default=HERE / "results" / "coverage_directions.json")
+    parser.add_argument("--pool", action="store_true", help="the folders' cases as one study (e.g. halves of one)")
     args = parser.parse_args()
     meta = json.loads((args.bounds / "meta.json").read_text())
     lower, upper = np.array(meta["lower"][:5]), np.array(meta["upper"][:5])
     results = {"order": "narrowest direction first", "studies": {}}
-    for folder in args.store:
-        cases = kept_cases(folder)
-        results["studies"][str(folder)] = {**summarise(cases, lower, upper), "theta_bands": theta_bands(cases)}
+    groups = {" + ".join(map(str, args.store)): args.store} if args.pool else {str(f): [f] for f in args.store}
+    for name, folders in groups.items():
+        cases = [case for folder in folders for case in kept_cases(folder)]
+        results["studies"][name] = {
+            **summarise(cases, lower, upper),
+            "theta_bands": theta_bands(cases, lower, upper),
+            "theta_sensitivity_quartiles": theta_sensitivity_quartiles(cases),
+        }
     args.results.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=1))
 

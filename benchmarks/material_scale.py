@@ -30,6 +30,11 @@ estimator, and what the shifts leave of the error against the GP variance
 (benchmarks/results/material_scale_fresh_shift.json); ``--oracle`` also writes a copy of the
 emulator with the fresh materials' C (a diagnostic: fitted on the cases it is scored on).
 
+``--halves DIR``: C fitted as the emulator fits it but on alternate halves of the fresh materials
+(each half's copy of the emulator, DIR_A and DIR_B, is then scored by ``benchmarks/coverage.py
+--materials`` on the other half: a C from materials the GPs did not see, without the oracle's
+circularity; benchmarks/results/material_scale_halves.json).
+
 ``shift``: the same cases under the likelihood of ``--emulator-error shift`` (the emulator's
 cross-validated parameter shift, ``meta.json`` ``held_out_excess.parameter_shift``, carried as
 J C J^T over every weight): the generalised least-squares shift of the estimate and its
@@ -188,6 +193,42 @@ def rows_and_weights(emulator, data, materials) -> tuple:
     return rows, emulator.scale(rows.inputs), weights, emulator.held_out_excess.load_scale(rows.inputs[:, 5:])
 
 
+def fresh_errors(emulator, data) -> tuple:
+    """The fresh (test-split) materials' rows of ``data`` under the emulator's own GPs: rows, PC
+    weight errors and GP variances (n, G), the mean's Jacobian in the material inputs (n, G, 5)
+    and the load scale s (n,)."""
+    from surrogate.error_model import mean_jacobian
+
+    rows, x, weights, scale = rows_and_weights(emulator, data, np.flatnonzero(data.split == 1))
+    mean, var, jac = mean_jacobian(emulator.gps, x)
+    return rows, weights - mean, var, jac, scale
+
+
+def split_shift_covariances(emulator, data) -> dict:
+    """C as the emulator's fit estimates it (:func:`surrogate.error_model.shift_covariance`: the
+    shifts' second moment less their fit errors, times M / (M - 6)), but from the fresh materials'
+    shifts under the emulator's GPs, on alternate halves: "A" from the 1st, 3rd, ... fresh
+    material, scored on the others, "B" the other way round. Unlike ``--oracle``, no case is
+    scored under a C fitted on its own material."""
+    from surrogate.error_model import material_shifts, shift_covariance
+
+    rows, error, var, jac, scale = fresh_errors(emulator, data)
+    tau2 = np.array(emulator.held_out_excess.variance)
+    shifts, fit_errors, _, _ = material_shifts(error, var, jac, rows.index[:, 0], scale, tau2)
+    materials = np.unique(rows.index[:, 0])
+    halves = {}
+    for name, parity in (("A", 0), ("B", 1)):
+        fitted = np.arange(len(materials)) % 2 == parity
+        covariance = shift_covariance(shifts[fitted], fit_errors[fitted])
+        halves[name] = {
+            "fitted_on": materials[fitted].tolist(),
+            "scored_on": materials[~fitted].tolist(),
+            "sd_unit_box": np.sqrt(np.diag(covariance)).round(4).tolist(),
+            "covariance": covariance.tolist(),
+        }
+    return halves
+
+
 def shift_and_residual(error, variance, jacobian, materials, scale, tau2) -> tuple[np.ndarray, np.ndarray]:
     """The second moment (5, 5) of the materials' parameter shifts, as the emulator's fit
     estimates it from its cross-validation (:func:`surrogate.error_model.shift_second_moment`,
@@ -208,12 +249,11 @@ def fresh_against_cross_validation(emulator, data, training) -> dict:
     share of the GP variance."""
     from skinfem.config import PARAM_NAMES
     from surrogate.emulator import fold_refit, gp_rows
-    from surrogate.error_model import cross_validated_errors, mean_jacobian
+    from surrogate.error_model import cross_validated_errors
 
     tau2 = np.array(emulator.held_out_excess.variance)
-    fresh_rows, x, weights, scale = rows_and_weights(emulator, data, np.flatnonzero(data.split == 1))
-    mean, var, jac = mean_jacobian(emulator.gps, x)
-    fresh_c, fresh_left = shift_and_residual(weights - mean, var, jac, fresh_rows.index[:, 0], scale, tau2)
+    fresh_rows, error, var, jac, scale = fresh_errors(emulator, data)
+    fresh_c, fresh_left = shift_and_residual(error, var, jac, fresh_rows.index[:, 0], scale, tau2)
     train_rows, xt, wt, st = rows_and_weights(emulator, training, np.flatnonzero(training.split == 0))
     p = emulator.provenance
     subset = gp_rows(len(train_rows.index), p.gp_fraction, None, p.seed)
@@ -232,7 +272,7 @@ def fresh_against_cross_validation(emulator, data, training) -> dict:
         "fresh_shift_covariance": fresh_c.tolist(),
         "last_frame_per_weight": {
             "mean_square_error_cross_validation": (cv_error[last_t] ** 2).mean(0).round(5).tolist(),
-            "mean_square_error_fresh": ((weights - mean)[last_f] ** 2).mean(0).round(5).tolist(),
+            "mean_square_error_fresh": (error[last_f] ** 2).mean(0).round(5).tolist(),
             "gp_variance_cross_validation": cv_var[last_t].mean(0).round(5).tolist(),
             "gp_variance_fresh": var[last_f].mean(0).round(5).tolist(),
             "left_by_the_shift_cross_validation": (cv_left[last_t] ** 2).mean(0).round(5).tolist(),
@@ -254,6 +294,24 @@ def write_oracle(emulator: Path, out: Path, covariance: list) -> None:
     meta = json.loads((out / "meta.json").read_text())
     meta["held_out_excess"]["parameter_shift"]["covariance"] = covariance
     (out / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def write_halves(args, parser) -> None:
+    """``--halves``: the two emulator copies of :func:`split_shift_covariances` and their record."""
+    from skinfem.io import StrainDataset
+    from surrogate.emulator import Emulator
+
+    folders = {name: args.halves.with_name(f"{args.halves.name}_{name}") for name in "AB"}
+    if any(folder.exists() for folder in folders.values()):
+        parser.error(f"--halves: {folders['A']} or {folders['B']} exists already")
+    halves = split_shift_covariances(Emulator.load(args.emulator), StrainDataset.open(args.data))
+    for name, folder in folders.items():
+        write_oracle(args.emulator, folder, halves[name]["covariance"])
+    result = {"emulator": str(args.emulator), "data": str(args.data), "copies": {n: str(f) for n, f in folders.items()}}
+    (args.results or HERE / "results" / "material_scale_halves.json").write_text(
+        json.dumps({**result, "halves": halves}, indent=2) + "\n"
+    )
+    print(json.dumps({**result, "sd_unit_box": {n: h["sd_unit_box"] for n, h in halves.items()}}, indent=1))
 
 
 def main() -> None:
@@ -282,7 +340,17 @@ def main() -> None:
         metavar="DIR",
         help="with --fresh-shift: also write a copy of the emulator whose C is the fresh materials' own (a diagnostic)",
     )
+    parser.add_argument(
+        "--halves",
+        type=Path,
+        metavar="DIR",
+        help="write copies DIR_A, DIR_B of the emulator whose C is fitted on alternate halves of the fresh "
+        "materials (results/material_scale_halves.json says which half each is scored on)",
+    )
     args = parser.parse_args()
+    if args.halves is not None:
+        write_halves(args, parser)
+        return
     if args.oracle is not None and (args.fresh_shift is None or args.oracle.exists()):
         parser.error(f"--oracle needs --fresh-shift and a folder that does not exist yet, got {args.oracle}")
     name = "material_scale.json" if args.fresh_shift is None else "material_scale_fresh_shift.json"
