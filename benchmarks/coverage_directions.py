@@ -46,20 +46,23 @@ def kept_cases(folder: Path) -> list:
     return cases
 
 
+def in_unit_box(cases: list, lower: np.ndarray, upper: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each case's thinned draws (99, 5) and the truths (n, 5), in the unit box of ``lower``, ``upper`` (5,)."""
+    span = upper - lower
+    draws = [(np.array(c.thinned_draws) - lower) / span for c in cases]
+    return draws, (np.array([c.truth for c in cases]) - lower) / span
+
+
 def summarise(cases: list, lower: np.ndarray, upper: np.ndarray) -> dict:
     """Variance of the truth's z per principal direction over the ``cases`` of one study folder."""
-    scores, errors = [], []
-    for case in cases:
-        unit = (np.array(case.thinned_draws) - lower) / (upper - lower)
-        truth = (np.array(case.truth) - lower) / (upper - lower)
-        scores.append(direction_scores(unit, truth))
-        errors.append(unit.mean(axis=0) - truth)
-    z, sd, vectors = (np.array(s) for s in zip(*scores))
+    draws, truths = in_unit_box(cases, lower, upper)
+    z, sd, vectors = (np.array(s) for s in zip(*map(direction_scores, draws, truths)))
+    errors = np.array([d.mean(axis=0) for d in draws]) - truths
     weights = vectors[:, 4, :] * sd / np.sqrt(np.sum((vectors[:, 4, :] * sd) ** 2, axis=1, keepdims=True))
     theta_z2 = np.sum(weights * z, axis=1) ** 2  # theta's own z^2 = (sum_k w_k z_k)^2
     parts = np.sum(weights**2 * z**2, axis=1)
     return {
-        "cases": len(scores),
+        "cases": len(cases),
         "rms_error_of_mean_unit_box": np.sqrt(np.mean(np.square(errors), axis=0)).round(4).tolist(),  # per parameter
         "truth_z_variance": np.mean(z**2, axis=0).round(3).tolist(),
         "mean_sd_unit_box": sd.mean(axis=0).round(4).tolist(),
@@ -77,9 +80,9 @@ def theta_bands(cases: list, lower: np.ndarray, upper: np.ndarray, edges=(0.0, 2
     truth = np.array([c.truth[4] for c in cases])
     z = np.array([c.z_scores()[4] for c in cases])
     covered = np.array([c.covered_50[4] for c in cases], float)
-    unit = [(np.array(c.thinned_draws) - lower) / (upper - lower) for c in cases]
-    error = np.array([u.mean(axis=0) for u in unit]) - (np.array([c.truth for c in cases]) - lower) / (upper - lower)
-    sd = np.array([u.std(axis=0) for u in unit])
+    draws, truths = in_unit_box(cases, lower, upper)
+    error = np.array([d.mean(axis=0) for d in draws]) - truths
+    sd = np.array([d.std(axis=0) for d in draws])
     bands = {}
     for lo, hi in zip(edges[:-1], edges[1:]):
         inside = (truth >= lo) & (truth < hi)

@@ -55,12 +55,14 @@ def main() -> None:
     emulator, data = Emulator.load(args.emulator), StrainDataset.open(args.data)
     materials = [int(i) for i in np.flatnonzero(data.split == 1)]
     results = {"emulator": str(args.emulator), "data": str(args.data), "parameters": list(PARAM_NAMES)}
+    observed = [
+        ObservedWeights.project(emulator, from_dataset(data, i, [i % len(data.designs)], [-1])) for i in materials
+    ]
     for name, (error_model, shift) in MODELS.items():
         rows = []
-        for i in materials:
-            observed = ObservedWeights.project(emulator, from_dataset(data, i, [i % len(data.designs)], [-1]))
-            posterior = SkinPosterior(emulator, observed, emulator_error=error_model, emulator_shift=shift)
-            rows.append(signature_errors(posterior, torch.as_tensor(observed.truth)))
+        for weights in observed:
+            posterior = SkinPosterior(emulator, weights, emulator_error=error_model, emulator_shift=shift)
+            rows.append(signature_errors(posterior, torch.as_tensor(weights.truth)))
         along, quadratic = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
         theta = data.params[materials, 4]
         results[name] = {
